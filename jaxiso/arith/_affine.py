@@ -1,0 +1,520 @@
+"""Reduced affine arithmetic in Messine's AF1 form (seed Sec. 6.2.5, Eq. 6.14-6.15).
+
+An `Affine` value is ``center + sum_i dev[..., i] * e_i + err * e_{n+1}`` with every
+``e in [-1, 1]``: `n` static partial deviations that keep correlations between inputs
+(for ray tracing map x, y, z or the ray parameter t to symbols) and one non-negative
+accumulated error term. ``n = 1`` is the seed's float3 form (Algorithm 6).
+
+* Affine operations (+, -, scaling) are exact (Eq. 6.15).
+* `mul` is Eq. 6.15: ``err = |x0| y_err + |y0| x_err + rad(x) rad(y)``.
+* `square` is tighter than ``mul(x, x)``: the quadratic part lies in ``[0, rad^2]``.
+* Convex/concave functions (exp, log, sqrt, reciprocal, even powers, x**p, cosh, abs)
+  use the Chebyshev linearisation, made sound for any float rounding of the slope by
+  bounding the convex error from below with a tangent at the approximate minimiser.
+* Monotone sigmoid-like functions (tanh, atan, sinh, cbrt) use the min-range
+  linearisation (slope = the smallest derivative on the range).
+* sin, cos, tan, floor, ceil, sign, fmod fall back to `Interval` (centre and error only,
+  correlation lost), as the seed does for its GPU RAA (Sec. 6.5.4).
+* min/max use the exact identity ``max(a, b) = (a + b + |a - b|) / 2``.
+* Comparisons return the three-valued `Interval` of bools of the interval module; `where`
+  keeps the chosen branch exactly and takes the hull where the condition is unknown.
+
+Empty results carry NaN (as for Interval); unbounded ones an infinite `err`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _interval as ia
+from ._interval import Interval
+
+__all__ = [
+    "Affine", "from_interval", "to_interval", "as_affine", "radius",
+    "add", "sub", "neg", "mul", "div", "recip", "square", "ipow", "pow", "sqrt", "exp",
+    "log", "abs", "cosh", "sinh", "tanh", "atan", "cbrt", "sin", "cos", "tan", "floor",
+    "ceil", "sign", "fmod", "minimum", "maximum", "clamp", "lt", "le", "gt", "ge", "eq",
+    "ne", "select_n", "where", "widen",
+]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True, eq=False)
+class Affine:
+    """A batch of AF1 affine forms.
+
+    Attributes:
+      center: [*S] central values.
+      dev: [*S, n] partial deviations, one per noise symbol (n is static).
+      err: [*S] non-negative accumulated error (the AF1 ``e_{n+1}`` term).
+      defined: [*S] bool, as for `Interval` (False where a domain part was dropped).
+    """
+
+    center: jax.Array
+    dev: jax.Array
+    err: jax.Array
+    defined: jax.Array = None
+
+    def __post_init__(self):
+        if self.defined is None:
+            object.__setattr__(self, "defined", jnp.ones(np.shape(self.center), bool))
+
+    __array_ufunc__ = None
+
+    @property
+    def n(self) -> int:
+        return int(np.shape(self.dev)[-1])
+
+    @property
+    def shape(self):
+        return np.shape(self.center)
+
+    def __getitem__(self, index):
+        s = self.shape
+        idx = index if isinstance(index, tuple) else (index,)
+        return Affine(jnp.broadcast_to(self.center, s)[index],
+                      jnp.broadcast_to(self.dev, s + (self.n,))[idx + (Ellipsis, slice(None))],
+                      jnp.broadcast_to(self.err, s)[index],
+                      jnp.broadcast_to(self.defined, s)[index])
+
+    def __repr__(self):
+        return (f"Affine(center={self.center!r}, dev={self.dev!r}, err={self.err!r}, "
+                f"defined={self.defined!r})")
+
+    def __add__(self, o): return add(self, o)
+    def __radd__(self, o): return add(o, self)
+    def __sub__(self, o): return sub(self, o)
+    def __rsub__(self, o): return sub(o, self)
+    def __mul__(self, o): return mul(self, o)
+    def __rmul__(self, o): return mul(o, self)
+    def __truediv__(self, o): return div(self, o)
+    def __rtruediv__(self, o): return div(o, self)
+    def __neg__(self): return neg(self)
+    def __pos__(self): return self
+    def __abs__(self): return abs(self)
+
+    def __pow__(self, exponent):
+        if isinstance(exponent, (int, np.integer)):
+            return ipow(self, int(exponent))
+        return pow(self, exponent)
+
+    def __lt__(self, o): return lt(self, o)
+    def __le__(self, o): return le(self, o)
+    def __gt__(self, o): return gt(self, o)
+    def __ge__(self, o): return ge(self, o)
+
+    def __bool__(self):
+        raise TypeError("an Affine form has no single truth value")
+
+
+# ----------------------------------------------------------------------- conversion
+
+
+def radius(x: Affine):
+    """rad(x) = sum |dev_i| + err (Eq. 6.10 with the AF1 error term)."""
+    return jnp.sum(jnp.abs(x.dev), axis=-1) + x.err
+
+
+def to_interval(x: Affine) -> Interval:
+    """Eq. 6.9: ``[center - rad, center + rad]``."""
+    r = radius(x)
+    return Interval(x.center - r, x.center + r, x.defined)
+
+
+def from_interval(x, symbol: int | None = None, n: int = 1) -> Affine:
+    """Eq. 6.8: centre = midpoint, the radius on noise symbol `symbol` (or on the error
+    term when `symbol` is None). Unbounded radii always go to the error term."""
+    x = ia.as_interval(x)
+    c = ia.mid(x)
+    r = ia.rad(x)
+    finite = jnp.isfinite(r)
+    if symbol is None:
+        dev = jnp.zeros(np.shape(c) + (n,), c.dtype)
+        err = r
+    else:
+        if not 0 <= symbol < n:
+            raise ValueError(f"symbol {symbol} out of range for n={n} noise symbols")
+        onehot = jnp.zeros((n,), c.dtype).at[symbol].set(1.0)
+        dev = jnp.where(finite, r, 0.0)[..., None] * onehot
+        err = jnp.where(finite, 0.0, r)
+    return Affine(c, dev, err, x.defined)
+
+
+def as_affine(x, n: int) -> Affine:
+    """Affine unchanged; an Interval on the error term; an array as an exact point."""
+    if isinstance(x, Affine):
+        if x.n != n:
+            raise ValueError(f"mixing affine forms with {x.n} and {n} noise symbols")
+        return x
+    if isinstance(x, Interval):
+        return from_interval(x, None, n)
+    x = jnp.asarray(x)
+    if not jnp.issubdtype(x.dtype, jnp.floating):
+        x = x.astype(jnp.float32)
+    return Affine(x, jnp.zeros(x.shape + (n,), x.dtype), jnp.zeros_like(x))
+
+
+def _n_of(*xs) -> int:
+    for x in xs:
+        if isinstance(x, Affine):
+            return x.n
+    return 1
+
+
+def _lift(*xs):
+    n = _n_of(*xs)
+    return [as_affine(x, n) for x in xs]
+
+
+def _flag(*xs):
+    f = xs[0].defined
+    for x in xs[1:]:
+        f = f & x.defined
+    return f
+
+
+def _interval_fallback(iv: Interval, n: int) -> Affine:
+    """An Interval result as an affine form with no correlation (error term only)."""
+    return from_interval(iv, None, n)
+
+
+def _select(mask, a: Affine, b: Affine) -> Affine:
+    return Affine(jnp.where(mask, a.center, b.center),
+                  jnp.where(mask[..., None], a.dev, b.dev),
+                  jnp.where(mask, a.err, b.err),
+                  jnp.where(mask, a.defined, b.defined))
+
+
+def _guard(result: Affine, fallback_iv: Interval) -> Affine:
+    """Use the interval fallback wherever the affine result is not finite."""
+    finite = (jnp.isfinite(result.center) & jnp.isfinite(result.err)
+              & jnp.all(jnp.isfinite(result.dev), axis=-1))
+    return _select(finite, result, _interval_fallback(fallback_iv, result.n))
+
+
+# ------------------------------------------------------------------ affine operations
+
+
+def add(a, b) -> Affine:
+    a, b = _lift(a, b)
+    return Affine(a.center + b.center, a.dev + b.dev, a.err + b.err, _flag(a, b))
+
+
+def neg(a) -> Affine:
+    (a,) = _lift(a)
+    return Affine(-a.center, -a.dev, a.err, a.defined)
+
+
+def sub(a, b) -> Affine:
+    if a is b:
+        zero = jnp.where(jnp.isnan(a.center), jnp.nan, 0.0)
+        return Affine(zero, jnp.zeros_like(a.dev), jnp.zeros_like(a.err), a.defined)
+    a, b = _lift(a, b)
+    return Affine(a.center - b.center, a.dev - b.dev, a.err + b.err, _flag(a, b))
+
+
+def _is_point(x: Affine):
+    return (x.err == 0) & jnp.all(x.dev == 0, axis=-1)
+
+
+def mul(a, b) -> Affine:
+    """AF1 product, Eq. 6.15."""
+    if a is b:
+        return square(a)
+    a, b = _lift(a, b)
+    c = a.center * b.center
+    dev = a.center[..., None] * b.dev + b.center[..., None] * a.dev
+    err = (ia._times(jnp.abs(a.center), b.err) + ia._times(jnp.abs(b.center), a.err)
+           + ia._times(radius(a), radius(b)))
+    out = Affine(c, dev, err, _flag(a, b))
+    return _guard(out, ia.mul(to_interval(a), to_interval(b)))
+
+
+def square(a) -> Affine:
+    """Tight AF1 square: ``(x0 + L)^2 = x0^2 + 2 x0 L + L^2`` with ``L^2 in [0, R^2]``."""
+    (a,) = _lift(a)
+    r = radius(a)
+    half_r2 = 0.5 * r * r
+    c = a.center * a.center + half_r2
+    dev = 2.0 * a.center[..., None] * a.dev
+    err = 2.0 * ia._times(jnp.abs(a.center), a.err) + half_r2
+    out = Affine(c, dev, err, a.defined)
+    return _guard(out, ia.square(to_interval(a)))
+
+
+def _linearized(x: Affine, alpha, d_lo, d_hi, fallback_iv: Interval, defined) -> Affine:
+    """``alpha * x + [d_lo, d_hi]`` as an affine form (the new error joins `err`)."""
+    zeta = 0.5 * (d_lo + d_hi)
+    delta = 0.5 * (d_hi - d_lo)
+    out = Affine(alpha * x.center + zeta, alpha[..., None] * x.dev,
+                 ia._times(jnp.abs(alpha), x.err) + delta, defined)
+    return _guard(out, fallback_iv)
+
+
+# Relative safety margin (in f32 ulps) on linearisation errors: the endpoint values,
+# the slope and the intercepts are each rounded, so pad delta by a few ulps of the
+# magnitudes involved. Cheap, and keeps the "fast" mode sound up to final rounding.
+_LIN_ULPS = 8.0
+
+
+def _pad(delta_terms, dtype):
+    eps = float(jnp.finfo(dtype).eps)
+    return _LIN_ULPS * eps * delta_terms + float(jnp.finfo(dtype).tiny)
+
+
+def _chebyshev(x: Affine, g, dg, dg_inv, convex, iv: Interval, fallback_iv: Interval):
+    """Chebyshev linearisation of a convex (or concave, ``convex=False``) function on the
+    range `iv` of `x` (already restricted to the domain).
+
+    The slope is the chord's; the upper error is at the endpoints; the lower error is
+    bounded by the tangent at ``xi = dg_inv(slope)`` clipped into the range, which is a
+    valid bound for any xi, so rounding in dg_inv cannot break inclusion.
+    """
+    a, b = iv.lo, iv.hi
+    s = jnp.where(convex, 1.0, -1.0)
+    ga, gb = s * g(a), s * g(b)
+    w = b - a
+    beta = jnp.where(w > 0, (gb - ga) / jnp.where(w > 0, w, 1.0), s * dg(a))
+    xi = jnp.clip(dg_inv(s * beta), a, b)
+    xi = jnp.where(jnp.isnan(xi), 0.5 * (a + b), xi)
+    h_a, h_b = ga - beta * a, gb - beta * b
+    hp = s * dg(xi) - beta
+    d_hi = jnp.maximum(h_a, h_b)
+    d_lo = (s * g(xi) - beta * xi) + jnp.minimum(ia._times(hp, a - xi), ia._times(hp, b - xi))
+    pad = _pad(jnp.abs(ga) + jnp.abs(gb) + jnp.abs(beta) * (jnp.abs(a) + jnp.abs(b)), a.dtype)
+    d_lo, d_hi = d_lo - pad, d_hi + pad
+    # back from s*g to g: alpha = s*beta, interval s*[d_lo, d_hi]
+    lo_g = jnp.where(convex, d_lo, -d_hi)
+    hi_g = jnp.where(convex, d_hi, -d_lo)
+    return _linearized(x, s * beta, lo_g, hi_g, fallback_iv, iv.defined & x.defined)
+
+
+def _minrange(x: Affine, g, alpha, iv: Interval, fallback_iv: Interval) -> Affine:
+    """Min-range linearisation of a monotone g: with `alpha` the derivative of least
+    magnitude on the range, ``g - alpha x`` is monotone, so its range is at the ends."""
+    a, b = iv.lo, iv.hi
+    ga, gb = g(a), g(b)
+    h_a, h_b = ga - alpha * a, gb - alpha * b
+    pad = _pad(jnp.abs(ga) + jnp.abs(gb) + jnp.abs(alpha) * (jnp.abs(a) + jnp.abs(b)), a.dtype)
+    return _linearized(x, alpha, jnp.minimum(h_a, h_b) - pad, jnp.maximum(h_a, h_b) + pad,
+                       fallback_iv, iv.defined & x.defined)
+
+
+def recip(a) -> Affine:
+    (a,) = _lift(a)
+    iv = to_interval(a)
+    positive = iv.lo > 0
+    out = _chebyshev(a, lambda v: 1.0 / v, lambda v: -1.0 / (v * v),
+                     lambda al: jnp.where(positive, 1.0, -1.0) * jnp.sqrt(-1.0 / al),
+                     positive, iv, ia.recip(iv))
+    return _select((iv.lo > 0) | (iv.hi < 0), out, _interval_fallback(ia.recip(iv), a.n))
+
+
+def div(a, b) -> Affine:
+    if a is b:
+        one = jnp.where(jnp.isnan(a.center), jnp.nan, 1.0)
+        res = Affine(one, jnp.zeros_like(a.dev), jnp.zeros_like(a.err), a.defined)
+        # x / x is 1 except where x may be 0 (undefined there; keep it honest)
+        return _select(ia.contains(to_interval(a), 0.0),
+                       _interval_fallback(ia.div(to_interval(a), to_interval(a)), a.n), res)
+    a, b = _lift(a, b)
+    return mul(a, recip(b))
+
+
+def abs(a) -> Affine:  # noqa: A001
+    """|x| by its chord: slope ``(|hi|-|lo|)/(hi-lo)``; ``|x| - slope*x`` is >= 0 and
+    largest at the ends. Exact (slope +-1) when the range does not straddle 0."""
+    (a,) = _lift(a)
+    iv = to_interval(a)
+    lo, hi = iv.lo, iv.hi
+    w = hi - lo
+    alpha = jnp.where(w > 0, (jnp.abs(hi) - jnp.abs(lo)) / jnp.where(w > 0, w, 1.0),
+                      jnp.sign(lo))
+    alpha = jnp.clip(alpha, -1.0, 1.0)
+    d_hi = jnp.maximum(jnp.abs(lo) - alpha * lo, jnp.abs(hi) - alpha * hi)
+    pad = _pad(jnp.abs(lo) + jnp.abs(hi), lo.dtype)
+    return _linearized(a, alpha, jnp.zeros_like(d_hi) - pad, d_hi + pad, ia.abs(iv), a.defined)
+
+
+def maximum(a, b) -> Affine:
+    a, b = _lift(a, b)
+    return mul(0.5, add(add(a, b), abs(sub(a, b))))
+
+
+def minimum(a, b) -> Affine:
+    a, b = _lift(a, b)
+    return mul(0.5, sub(add(a, b), abs(sub(a, b))))
+
+
+def clamp(lower, x, upper) -> Affine:
+    return minimum(maximum(x, lower), upper)
+
+
+def _even_power_inv(n):
+    return lambda al: jnp.sign(al) * (jnp.abs(al) / n) ** (1.0 / (n - 1))
+
+
+def ipow(a, n: int) -> Affine:
+    """Integer power: Chebyshev for even n (convex); odd n is convex/concave on one side
+    of 0 and ``x * x**(n-1)`` across it."""
+    n = int(n)
+    (a,) = _lift(a)
+    if n == 0:
+        one = jnp.where(jnp.isnan(a.center), jnp.nan, 1.0)
+        return Affine(one, jnp.zeros_like(a.dev), jnp.zeros_like(a.err), a.defined)
+    if n < 0:
+        return recip(ipow(a, -n))
+    if n == 1:
+        return a
+    if n == 2:
+        return square(a)
+    iv = to_interval(a)
+    g = lambda v: jax.lax.integer_pow(v, n)  # noqa: E731
+    dg = lambda v: n * jax.lax.integer_pow(v, n - 1)  # noqa: E731
+    fallback = ia.ipow(iv, n)
+    if n % 2 == 0:
+        return _chebyshev(a, g, dg, _even_power_inv(n), True, iv, fallback)
+    positive = iv.lo >= 0
+    side = _chebyshev(a, g, dg, lambda al: jnp.where(positive, 1.0, -1.0)
+                      * (jnp.abs(al) / n) ** (1.0 / (n - 1)), positive, iv, fallback)
+    across = mul(a, ipow(a, n - 1))
+    return _select((iv.lo >= 0) | (iv.hi <= 0), side, across)
+
+
+def pow(a, p) -> Affine:  # noqa: A001
+    """``a ** p``: integer p -> `ipow`; constant real p -> Chebyshev on ``a >= 0``
+    (convex for p > 1 or p < 0, concave for 0 < p < 1); an interval/affine exponent
+    falls back to Interval."""
+    (a,) = _lift(a)
+    if not isinstance(p, (Affine, Interval, jax.core.Tracer)):
+        p_np = np.asarray(p)
+        if p_np.ndim == 0:
+            pf = float(p_np)
+            if pf == int(pf):
+                return ipow(a, int(pf))
+            iv = ia.restrict(to_interval(a), 0.0)
+            return _chebyshev(a, lambda v: v**pf, lambda v: pf * v ** (pf - 1),
+                              lambda al: (al / pf) ** (1.0 / (pf - 1)),
+                              (pf > 1) or (pf < 0), iv, ia.pow(iv, pf))
+    p_iv = to_interval(p) if isinstance(p, Affine) else p
+    return _interval_fallback(ia.pow(to_interval(a), p_iv), a.n)
+
+
+def sqrt(a) -> Affine:
+    (a,) = _lift(a)
+    iv = ia.restrict(to_interval(a), 0.0)
+    return _chebyshev(a, jnp.sqrt, lambda v: 0.5 / jnp.sqrt(v), lambda al: 0.25 / (al * al),
+                      False, iv, ia.sqrt(iv))
+
+
+def log(a) -> Affine:
+    (a,) = _lift(a)
+    iv = ia.restrict(to_interval(a), 0.0)
+    return _chebyshev(a, jnp.log, lambda v: 1.0 / v, lambda al: 1.0 / al, False, iv,
+                      ia.log(iv))
+
+
+def exp(a) -> Affine:
+    (a,) = _lift(a)
+    iv = to_interval(a)
+    return _chebyshev(a, jnp.exp, jnp.exp, jnp.log, True, iv, ia.exp(iv))
+
+
+def cosh(a) -> Affine:
+    (a,) = _lift(a)
+    iv = to_interval(a)
+    return _chebyshev(a, jnp.cosh, jnp.sinh, jnp.arcsinh, True, iv, ia.cosh(iv))
+
+
+def sinh(a) -> Affine:
+    (a,) = _lift(a)
+    iv = to_interval(a)
+    return _minrange(a, jnp.sinh, jnp.cosh(ia.mig(iv)), iv, ia.sinh(iv))
+
+
+def tanh(a) -> Affine:
+    (a,) = _lift(a)
+    iv = to_interval(a)
+    t = jnp.tanh(ia.mag(iv))
+    return _minrange(a, jnp.tanh, 1.0 - t * t, iv, ia.tanh(iv))
+
+
+def atan(a) -> Affine:
+    (a,) = _lift(a)
+    iv = to_interval(a)
+    m = ia.mag(iv)
+    return _minrange(a, jnp.arctan, 1.0 / (1.0 + m * m), iv, ia.atan(iv))
+
+
+def cbrt(a) -> Affine:
+    (a,) = _lift(a)
+    iv = to_interval(a)
+    m = ia.mag(iv)
+    return _minrange(a, jnp.cbrt, 1.0 / (3.0 * jnp.cbrt(m * m)), iv, ia.cbrt(iv))
+
+
+def _via_interval(fn):
+    def rule(*args):
+        args = _lift(*args)
+        return _interval_fallback(fn(*[to_interval(x) for x in args]), args[0].n)
+
+    rule.__name__ = fn.__name__
+    rule.__doc__ = f"{fn.__name__} through Interval (correlation not kept)."
+    return rule
+
+
+sin = _via_interval(ia.sin)
+cos = _via_interval(ia.cos)
+tan = _via_interval(ia.tan)
+floor = _via_interval(ia.floor)
+ceil = _via_interval(ia.ceil)
+sign = _via_interval(ia.sign)
+fmod = _via_interval(ia.fmod)
+
+
+# ----------------------------------------------------------- comparisons and select
+
+
+def _compare(fn):
+    def rule(a, b):
+        a, b = _lift(a, b)
+        return fn(to_interval(a), to_interval(b))
+
+    rule.__name__ = fn.__name__
+    rule.__doc__ = f"Three-valued {fn.__name__} on the affine ranges (an Interval of bools)."
+    return rule
+
+
+lt, le, gt, ge, eq, ne = (_compare(f) for f in (ia.lt, ia.le, ia.gt, ia.ge, ia.eq, ia.ne))
+
+
+def select_n(which, *cases) -> Affine:
+    """Exact case where `which` is certain; the interval hull elsewhere."""
+    which = ia.as_interval(which)
+    cases = _lift(*cases)
+    hull = _interval_fallback(ia.select_n(which, *[to_interval(c) for c in cases]),
+                              cases[0].n)
+    out = hull
+    certain = which.lo == which.hi
+    w = which.lo.astype(jnp.int32)
+    for i, c in enumerate(cases):
+        out = _select(certain & (w == i), c, out)
+    return out
+
+
+def where(condition, x, y) -> Affine:
+    return select_n(condition, y, x)
+
+
+def widen(a: Affine, ulps: float = 1.0) -> Affine:
+    """Pad the error term by `ulps` of every term's magnitude (plus the smallest normal),
+    covering the rounding of the centre and of each deviation."""
+    eps = float(jnp.finfo(a.center.dtype).eps)
+    tiny = float(jnp.finfo(a.center.dtype).tiny)
+    mag = jnp.abs(a.center) + radius(a)
+    err = a.err + ulps * eps * mag + tiny * (a.n + 2)
+    return Affine(a.center, a.dev, err, a.defined)

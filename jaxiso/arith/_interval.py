@@ -1,0 +1,637 @@
+"""Interval arithmetic on batched JAX arrays (Moore; seed Sec. 6.2.2, Eq. 6.4-6.6, 6.18).
+
+An `Interval` encloses a set of reals per array element: `[lo, hi]`, any batch shape.
+
+Conventions (documented once here, relied on everywhere):
+
+* **Empty** intervals have NaN in both endpoints. Every function below maps an empty
+  input to an empty output, and `contains` is False for them, so an empty enclosure can
+  never register a ray hit. `hull` treats empty as its identity.
+* **Domain**: points of a box outside an operation's domain (sqrt or log of negatives,
+  fractional powers of negatives) are dropped from the result and `defined` becomes False
+  there (IEEE 1788's "defined" decoration, as a bool array). A box wholly outside the
+  domain gives the empty interval.
+* **Unbounded**: endpoints may be +-inf. Division by an interval containing 0 is unbounded
+  (an asymptote, seed Sec. 6.4.4); `0 * inf` inside a product counts as 0, as in interval
+  arithmetic, not NaN.
+* **Three-valued logic**: comparisons return an `Interval` of bools: [True, True] is
+  certainly true, [False, False] certainly false, [False, True] unknown. `logical_and`,
+  `logical_or`, `logical_not` and `where` accept them; `where` with an unknown condition
+  gives the hull of both branches.
+* **Rounding**: these functions round to nearest, as the seed does (Sec. 6.4.1, 6.5.4).
+  `widen` pads a result outward by a few ulps; `extend(..., rounding="outward")` applies it
+  after every inexact operation.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+__all__ = [
+    "Interval", "interval", "point", "entire", "empty", "as_interval",
+    "width", "mid", "rad", "mig", "mag", "contains", "is_empty", "hull", "intersect",
+    "add", "sub", "mul", "div", "neg", "abs", "square", "ipow", "pow", "sqrt", "cbrt",
+    "exp", "log", "sin", "cos", "tan", "tanh", "atan", "sinh", "cosh",
+    "minimum", "maximum", "clamp", "floor", "ceil", "sign", "fmod",
+    "lt", "le", "gt", "ge", "eq", "ne", "logical_and", "logical_or", "logical_not",
+    "where", "select_n", "widen",
+    "certainly", "possibly", "is_true", "is_false", "is_unknown",
+]
+
+_PI = math.pi
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True, eq=False)
+class Interval:
+    """A batch of closed intervals ``[lo, hi]``.
+
+    Attributes:
+      lo, hi: arrays of the same shape (any batch shape); NaN marks an empty interval.
+      defined: bool array of that shape; False where some point of the input box was
+        outside the domain of an operation (and was dropped). Defaults to all True.
+
+    Build a checked interval from user data with `interval(lo, hi)`; the bare
+    constructor does no validation (it must accept tracers and pytree placeholders).
+    Operators ``+ - * / ** < <= > >= & | ~`` and ``abs``/unary minus dispatch to the
+    functions of this module.
+    """
+
+    lo: jax.Array
+    hi: jax.Array
+    defined: jax.Array = None
+
+    def __post_init__(self):
+        if self.defined is None:
+            shape = np.broadcast_shapes(np.shape(self.lo), np.shape(self.hi))
+            object.__setattr__(self, "defined", jnp.ones(shape, bool))
+
+    __array_ufunc__ = None  # make numpy defer to our reflected operators
+
+    @property
+    def shape(self):
+        return np.broadcast_shapes(np.shape(self.lo), np.shape(self.hi))
+
+    @property
+    def dtype(self):
+        return jnp.result_type(self.lo, self.hi)
+
+    @property
+    def ndim(self):
+        return len(self.shape)
+
+    def __getitem__(self, index):
+        return Interval(_bcast(self.lo, self)[index], _bcast(self.hi, self)[index],
+                        _bcast(self.defined, self)[index])
+
+    def __repr__(self):
+        return f"Interval(lo={self.lo!r}, hi={self.hi!r}, defined={self.defined!r})"
+
+    # arithmetic
+    def __add__(self, other): return add(self, other)
+    def __radd__(self, other): return add(other, self)
+    def __sub__(self, other): return sub(self, other)
+    def __rsub__(self, other): return sub(other, self)
+    def __mul__(self, other): return mul(self, other)
+    def __rmul__(self, other): return mul(other, self)
+    def __truediv__(self, other): return div(self, other)
+    def __rtruediv__(self, other): return div(other, self)
+    def __neg__(self): return neg(self)
+    def __pos__(self): return self
+    def __abs__(self): return abs(self)
+
+    def __pow__(self, exponent):
+        if isinstance(exponent, (int, np.integer)):
+            return ipow(self, int(exponent))
+        return pow(self, exponent)
+
+    def __rpow__(self, base): return pow(base, self)
+
+    # three-valued comparisons and logic
+    def __lt__(self, other): return lt(self, other)
+    def __le__(self, other): return le(self, other)
+    def __gt__(self, other): return gt(self, other)
+    def __ge__(self, other): return ge(self, other)
+    def __and__(self, other): return logical_and(self, other)
+    def __rand__(self, other): return logical_and(other, self)
+    def __or__(self, other): return logical_or(self, other)
+    def __ror__(self, other): return logical_or(other, self)
+    def __invert__(self): return logical_not(self)
+
+    def __bool__(self):
+        raise TypeError("an Interval has no single truth value; use certainly(), "
+                        "possibly() or contains()")
+
+
+def _bcast(x, like: Interval):
+    return jnp.broadcast_to(x, like.shape)
+
+
+# --------------------------------------------------------------------------- building
+
+
+def interval(lo, hi, dtype=None) -> Interval:
+    """Checked constructor for user data: ``lo <= hi``, no NaN (concrete inputs only)."""
+    lo, hi = jnp.asarray(lo, dtype), jnp.asarray(hi, dtype)
+    check_endpoints(lo, hi)
+    shape = jnp.broadcast_shapes(lo.shape, hi.shape)
+    return Interval(jnp.broadcast_to(lo, shape), jnp.broadcast_to(hi, shape))
+
+
+def check_endpoints(lo, hi, what="interval"):
+    """Raise ValueError for NaN endpoints or lo > hi (skipped for traced values)."""
+    if isinstance(lo, jax.core.Tracer) or isinstance(hi, jax.core.Tracer):
+        return
+    lo_np, hi_np = np.broadcast_arrays(np.asarray(lo), np.asarray(hi))
+    if np.isnan(lo_np).any() or np.isnan(hi_np).any():
+        raise ValueError(f"{what}: endpoints must not be NaN (an empty input box is not "
+                         "allowed; NaN marks empty results only)")
+    bad = np.argwhere(lo_np > hi_np)
+    if bad.size:
+        i = tuple(int(k) for k in bad[0])
+        raise ValueError(f"{what}: needs lo <= hi, but at index {i} lo={lo_np[i]} > "
+                         f"hi={hi_np[i]} ({len(bad)} such elements)")
+
+
+def point(x) -> Interval:
+    """The degenerate interval ``[x, x]``."""
+    x = jnp.asarray(x)
+    return Interval(x, x)
+
+
+def as_interval(x) -> Interval:
+    """An Interval unchanged; anything array-like as a point interval."""
+    return x if isinstance(x, Interval) else point(x)
+
+
+def entire(shape=(), dtype=jnp.float32) -> Interval:
+    return Interval(jnp.full(shape, -jnp.inf, dtype), jnp.full(shape, jnp.inf, dtype))
+
+
+def empty(shape=(), dtype=jnp.float32) -> Interval:
+    nan = jnp.full(shape, jnp.nan, dtype)
+    return Interval(nan, nan, jnp.zeros(shape, bool))
+
+
+def _make(lo, hi, *parents: Interval, defined=None) -> Interval:
+    """Result interval whose `defined` flag is the AND of its parents' (and `defined`)."""
+    flag = defined
+    for p in parents:
+        flag = p.defined if flag is None else flag & p.defined
+    if flag is None:
+        flag = jnp.ones(jnp.broadcast_shapes(jnp.shape(lo), jnp.shape(hi)), bool)
+    else:
+        flag = jnp.broadcast_to(flag, jnp.broadcast_shapes(jnp.shape(lo), jnp.shape(flag)))
+    return Interval(lo, hi, flag)
+
+
+def _same_nan(lo, hi, *srcs):
+    """Propagate emptiness of `srcs` into both endpoints (one mechanism for all rules)."""
+    bad = None
+    for s in srcs:
+        b = jnp.isnan(s)
+        bad = b if bad is None else bad | b
+    return jnp.where(bad, jnp.nan, lo), jnp.where(bad, jnp.nan, hi)
+
+
+# ---------------------------------------------------------------------------- queries
+
+
+def width(x: Interval):
+    return x.hi - x.lo
+
+
+def mid(x: Interval):
+    """Midpoint; finite endpoint for half-unbounded intervals, 0 for the entire line."""
+    m = 0.5 * x.lo + 0.5 * x.hi
+    m = jnp.where(jnp.isinf(x.lo) & jnp.isfinite(x.hi), x.hi, m)
+    m = jnp.where(jnp.isinf(x.hi) & jnp.isfinite(x.lo), x.lo, m)
+    return jnp.where(jnp.isinf(x.lo) & jnp.isinf(x.hi), 0.0, m)
+
+
+def rad(x: Interval):
+    """Radius about `mid` (covers both endpoints after rounding)."""
+    m = mid(x)
+    return jnp.maximum(x.hi - m, m - x.lo)
+
+
+def mig(x: Interval):
+    """Mignitude: the smallest |v| over the interval."""
+    return jnp.abs(jnp.clip(0.0, x.lo, x.hi))
+
+
+def mag(x: Interval):
+    """Magnitude: the largest |v| over the interval."""
+    return jnp.maximum(-x.lo, x.hi)
+
+
+def contains(x: Interval, value=0.0):
+    """True where ``lo <= value <= hi`` (False for empty intervals)."""
+    return (x.lo <= value) & (value <= x.hi)
+
+
+def is_empty(x: Interval):
+    return jnp.isnan(x.lo) | jnp.isnan(x.hi)
+
+
+def hull(a, b) -> Interval:
+    """Smallest interval containing both (empty is the identity)."""
+    a, b = as_interval(a), as_interval(b)
+    return _make(jnp.fmin(a.lo, b.lo), jnp.fmax(a.hi, b.hi), a, b)
+
+
+def intersect(a, b) -> Interval:
+    """Intersection; empty (NaN) where the two are disjoint."""
+    a, b = as_interval(a), as_interval(b)
+    lo, hi = jnp.maximum(a.lo, b.lo), jnp.minimum(a.hi, b.hi)
+    lo, hi = _same_nan(lo, hi, jnp.where(lo > hi, jnp.nan, 0.0))
+    return _make(lo, hi, a, b)
+
+
+# --------------------------------------------------------------------- rule builders
+
+
+def monotone_increasing(fn):
+    """Interval rule of a non-decreasing function: ``[fn(lo), fn(hi)]``."""
+
+    def rule(x):
+        x = as_interval(x)
+        return _make(fn(x.lo), fn(x.hi), x)
+
+    return rule
+
+
+def monotone_decreasing(fn):
+    """Interval rule of a non-increasing function: ``[fn(hi), fn(lo)]``."""
+
+    def rule(x):
+        x = as_interval(x)
+        return _make(fn(x.hi), fn(x.lo), x)
+
+    return rule
+
+
+def even(fn):
+    """Rule of an even function that is non-decreasing on [0, inf): ``fn(|x|)``."""
+
+    def rule(x):
+        x = as_interval(x)
+        return _make(fn(mig(x)), fn(mag(x)), x)
+
+    return rule
+
+
+def restrict(x: Interval, lower=-jnp.inf, upper=jnp.inf) -> Interval:
+    """Drop the part of `x` outside ``[lower, upper]`` (the domain), flagging it."""
+    x = as_interval(x)
+    inside = (x.lo >= lower) & (x.hi <= upper)
+    lo, hi = jnp.maximum(x.lo, lower), jnp.minimum(x.hi, upper)
+    lo, hi = _same_nan(lo, hi, jnp.where(lo > hi, jnp.nan, 0.0))
+    return _make(lo, hi, x, defined=inside)
+
+
+def monotone_on(fn, lower=-jnp.inf, upper=jnp.inf, increasing=True):
+    """Rule of a function monotone on its domain ``[lower, upper]`` (sqrt, log, ...)."""
+    inner = monotone_increasing(fn) if increasing else monotone_decreasing(fn)
+    return lambda x: inner(restrict(x, lower, upper))
+
+
+# ------------------------------------------------------------------------ arithmetic
+
+
+def add(a, b) -> Interval:
+    a, b = as_interval(a), as_interval(b)
+    return _make(a.lo + b.lo, a.hi + b.hi, a, b)
+
+
+def sub(a, b) -> Interval:
+    if a is b:  # x - x is exactly 0 wherever x is defined
+        zero = jnp.zeros_like(a.lo)
+        return _make(*_same_nan(zero, zero, a.lo), a)
+    a, b = as_interval(a), as_interval(b)
+    return _make(a.lo - b.hi, a.hi - b.lo, a, b)
+
+
+def neg(a) -> Interval:
+    a = as_interval(a)
+    return _make(-a.hi, -a.lo, a)
+
+
+def _times(u, v):
+    """Endpoint product with 0 * inf = 0 (interval convention), NaN kept for empties."""
+    p = u * v
+    return jnp.where((u == 0) | (v == 0), jnp.zeros_like(p), p)
+
+
+def mul(a, b) -> Interval:
+    """Product (Eq. 6.5): hull of the four endpoint products."""
+    if a is b:
+        return square(a)
+    a, b = as_interval(a), as_interval(b)
+    p = (_times(a.lo, b.lo), _times(a.lo, b.hi), _times(a.hi, b.lo), _times(a.hi, b.hi))
+    lo = jnp.minimum(jnp.minimum(p[0], p[1]), jnp.minimum(p[2], p[3]))
+    hi = jnp.maximum(jnp.maximum(p[0], p[1]), jnp.maximum(p[2], p[3]))
+    # An empty factor times an exact 0 endpoint would give 0: keep it empty.
+    lo, hi = _same_nan(lo, hi, a.lo, b.lo)
+    return _make(lo, hi, a, b)
+
+
+def recip(a) -> Interval:
+    """1 / a. Contains-zero cases are unbounded (seed Sec. 6.4.4): ``[0, h]`` gives
+    ``[1/h, inf]``, ``[l, 0]`` gives ``[-inf, 1/l]``, zero inside gives the entire line."""
+    a = as_interval(a)
+    inf = jnp.full_like(a.lo, jnp.inf)
+    lo = 1.0 / a.hi
+    hi = 1.0 / a.lo
+    lo = jnp.where(a.hi == 0, -inf, lo)  # [l, 0] -> [-inf, 1/l] (1/-0 vs 1/+0 ambiguity)
+    hi = jnp.where(a.lo == 0, inf, hi)   # [0, h] -> [1/h, inf]
+    straddle = (a.lo < 0) & (a.hi > 0) | ((a.lo == 0) & (a.hi == 0))
+    lo = jnp.where(straddle, -inf, lo)
+    hi = jnp.where(straddle, inf, hi)
+    lo, hi = _same_nan(lo, hi, a.lo)
+    return _make(lo, hi, a)
+
+
+def div(a, b) -> Interval:
+    """Quotient as ``a * (1 / b)``; unbounded when `b` contains 0 (never a hit)."""
+    return mul(a, recip(b))
+
+
+def abs(a) -> Interval:  # noqa: A001 - mirrors jnp.abs
+    a = as_interval(a)
+    return _make(mig(a), mag(a), a)
+
+
+def square(a) -> Interval:
+    """x**2 with the tight even rule: lower bound 0 when the interval straddles 0."""
+    a = as_interval(a)
+    lo_m, hi_m = mig(a), mag(a)
+    return _make(lo_m * lo_m, hi_m * hi_m, a)
+
+
+def ipow(a, n: int) -> Interval:
+    """Integer power (seed Eq. 6.18): even powers are even functions, odd ones monotone."""
+    n = int(n)
+    a = as_interval(a)
+    if n == 0:
+        one = jnp.ones_like(a.lo)
+        lo, hi = _same_nan(one, one, a.lo)
+        return _make(lo, hi, a)
+    if n < 0:
+        return recip(ipow(a, -n))
+    if n == 1:
+        return a
+    if n == 2:
+        return square(a)
+    fn = lambda v: lax.integer_pow(v, n)  # noqa: E731 - exact repeated squaring
+    return even(fn)(a) if n % 2 == 0 else monotone_increasing(fn)(a)
+
+
+def pow(a, b) -> Interval:  # noqa: A001 - mirrors jnp.pow
+    """Real power ``a ** b`` (either may be an interval).
+
+    A concrete integer exponent uses `ipow`. Otherwise the base is restricted to
+    ``a >= 0`` (the rest is dropped and flagged), where ``a ** b`` is monotone in each
+    argument, so the hull of the four corners encloses it. A traced exponent with a
+    negative base gives the entire line (jnp.power is real there for integer exponents).
+    """
+    if not isinstance(b, Interval) and not isinstance(b, jax.core.Tracer):
+        b_np = np.asarray(b)
+        if b_np.ndim == 0 and float(b_np) == int(b_np):
+            return ipow(a, int(b_np))
+    exponent_traced = isinstance(b, Interval) or isinstance(b, jax.core.Tracer)
+    a, b = as_interval(a), as_interval(b)
+    a_pos = restrict(a, 0.0)
+    c = [jnp.power(u, v) for u in (a_pos.lo, a_pos.hi) for v in (b.lo, b.hi)]
+    lo = jnp.minimum(jnp.minimum(c[0], c[1]), jnp.minimum(c[2], c[3]))
+    hi = jnp.maximum(jnp.maximum(c[0], c[1]), jnp.maximum(c[2], c[3]))
+    if exponent_traced:
+        neg_base = a.lo < 0
+        lo = jnp.where(neg_base, -jnp.inf, lo)
+        hi = jnp.where(neg_base, jnp.inf, hi)
+        lo, hi = _same_nan(lo, hi, a.lo, b.lo)
+        return _make(lo, hi, a, b)
+    lo, hi = _same_nan(lo, hi, a_pos.lo, b.lo)
+    return _make(lo, hi, a_pos, b)
+
+
+sqrt = monotone_on(jnp.sqrt, lower=0.0)
+log = monotone_on(jnp.log, lower=0.0)
+cbrt = monotone_increasing(jnp.cbrt)
+exp = monotone_increasing(jnp.exp)
+tanh = monotone_increasing(jnp.tanh)
+atan = monotone_increasing(jnp.arctan)
+sinh = monotone_increasing(jnp.sinh)
+cosh = even(jnp.cosh)
+floor = monotone_increasing(jnp.floor)
+ceil = monotone_increasing(jnp.ceil)
+sign = monotone_increasing(jnp.sign)
+for _f, _n in ((sqrt, "sqrt"), (log, "log"), (cbrt, "cbrt"), (exp, "exp"), (tanh, "tanh"),
+               (atan, "atan"), (sinh, "sinh"), (cosh, "cosh"), (floor, "floor"),
+               (ceil, "ceil"), (sign, "sign")):
+    _f.__name__ = _n
+    _f.__doc__ = f"Interval {_n} (monotone/even rule; domain parts dropped and flagged)."
+
+# Beyond this magnitude f32 cannot resolve a period of sin/cos; answer [-1, 1].
+_TRIG_MAX_ARG = 2.0**16
+
+
+def cos(a) -> Interval:
+    """cos: the endpoint values, widened to 1 / -1 where the interval holds 2k*pi /
+    (2k+1)*pi."""
+    a = as_interval(a)
+    c_lo, c_hi = jnp.cos(a.lo), jnp.cos(a.hi)
+    lo, hi = jnp.minimum(c_lo, c_hi), jnp.maximum(c_lo, c_hi)
+    two_pi = 2.0 * _PI
+    has_max = jnp.ceil(a.lo / two_pi) * two_pi <= a.hi
+    has_min = jnp.ceil((a.lo - _PI) / two_pi) * two_pi + _PI <= a.hi
+    wide = ~((a.hi - a.lo) < two_pi) | (mag(a) > _TRIG_MAX_ARG)
+    hi = jnp.where(has_max | wide, 1.0, hi)
+    lo = jnp.where(has_min | wide, -1.0, lo)
+    lo, hi = _same_nan(lo, hi, a.lo, a.hi)
+    return _make(lo, hi, a)
+
+
+def sin(a) -> Interval:
+    """sin: endpoint values from jnp.sin, extrema located as for cos(x - pi/2)."""
+    a = as_interval(a)
+    s_lo, s_hi = jnp.sin(a.lo), jnp.sin(a.hi)
+    lo, hi = jnp.minimum(s_lo, s_hi), jnp.maximum(s_lo, s_hi)
+    two_pi = 2.0 * _PI
+    has_max = jnp.ceil((a.lo - 0.5 * _PI) / two_pi) * two_pi + 0.5 * _PI <= a.hi
+    has_min = jnp.ceil((a.lo + 0.5 * _PI) / two_pi) * two_pi - 0.5 * _PI <= a.hi
+    wide = ~((a.hi - a.lo) < two_pi) | (mag(a) > _TRIG_MAX_ARG)
+    hi = jnp.where(has_max | wide, 1.0, hi)
+    lo = jnp.where(has_min | wide, -1.0, lo)
+    lo, hi = _same_nan(lo, hi, a.lo, a.hi)
+    return _make(lo, hi, a)
+
+
+def tan(a) -> Interval:
+    """tan: monotone between poles; the entire line if a pole (k+1/2)*pi is inside."""
+    a = as_interval(a)
+    k_lo = jnp.floor((a.lo - 0.5 * _PI) / _PI)
+    k_hi = jnp.floor((a.hi - 0.5 * _PI) / _PI)
+    pole = (k_lo != k_hi) | ~((a.hi - a.lo) < _PI) | (mag(a) > _TRIG_MAX_ARG)
+    lo = jnp.where(pole, -jnp.inf, jnp.tan(a.lo))
+    hi = jnp.where(pole, jnp.inf, jnp.tan(a.hi))
+    lo, hi = _same_nan(lo, hi, a.lo, a.hi)
+    return _make(lo, hi, a)
+
+
+def minimum(a, b) -> Interval:
+    a, b = as_interval(a), as_interval(b)
+    return _make(jnp.minimum(a.lo, b.lo), jnp.minimum(a.hi, b.hi), a, b)
+
+
+def maximum(a, b) -> Interval:
+    a, b = as_interval(a), as_interval(b)
+    return _make(jnp.maximum(a.lo, b.lo), jnp.maximum(a.hi, b.hi), a, b)
+
+
+def clamp(lower, x, upper) -> Interval:
+    """``min(max(x, lower), upper)`` (argument order of lax.clamp)."""
+    return minimum(maximum(x, lower), upper)
+
+
+def fmod(a, b) -> Interval:
+    """C fmod / lax.rem: ``a - trunc(a / b) * b``, sign of `a`, ``|r| < |b|``.
+
+    Exact (monotone) when a point divisor and `a` stay within one period; otherwise
+    bounded by sign(a), ``|r| <= |a|`` and ``|r| < max |b|``.
+    """
+    a, b = as_interval(a), as_interval(b)
+    m = mag(b)
+    lo = jnp.where(a.lo >= 0, 0.0, jnp.maximum(a.lo, -m))
+    hi = jnp.where(a.hi <= 0, 0.0, jnp.minimum(a.hi, m))
+    q_lo, q_hi = jnp.trunc(a.lo / b.lo), jnp.trunc(a.hi / b.lo)
+    one_period = (b.lo == b.hi) & (q_lo == q_hi) & ((a.lo >= 0) | (a.hi <= 0))
+    lo = jnp.where(one_period, lax.rem(a.lo, b.lo), lo)
+    hi = jnp.where(one_period, lax.rem(a.hi, b.lo), hi)
+    # fmod by 0 is undefined: a zero divisor is dropped and flagged, [0, 0] is empty.
+    divisor_zero = (b.lo <= 0) & (b.hi >= 0)
+    only_zero = jnp.where((b.lo == 0) & (b.hi == 0), jnp.nan, 0.0)
+    lo, hi = _same_nan(lo, hi, a.lo, b.lo, only_zero)
+    return _make(lo, hi, a, b, defined=~divisor_zero)
+
+
+# ------------------------------------------------------------- three-valued logic
+
+
+def _truth(certain, possible, *parents) -> Interval:
+    return _make(certain, possible, *parents)
+
+
+def lt(a, b) -> Interval:
+    a, b = as_interval(a), as_interval(b)
+    return _truth(a.hi < b.lo, a.lo < b.hi, a, b)
+
+
+def le(a, b) -> Interval:
+    a, b = as_interval(a), as_interval(b)
+    return _truth(a.hi <= b.lo, a.lo <= b.hi, a, b)
+
+
+def gt(a, b) -> Interval:
+    return lt(b, a)
+
+
+def ge(a, b) -> Interval:
+    return le(b, a)
+
+
+def eq(a, b) -> Interval:
+    a, b = as_interval(a), as_interval(b)
+    certain = (a.lo == a.hi) & (b.lo == b.hi) & (a.lo == b.lo)
+    return _truth(certain, (a.lo <= b.hi) & (b.lo <= a.hi), a, b)
+
+
+def ne(a, b) -> Interval:
+    return logical_not(eq(a, b))
+
+
+def logical_and(a, b) -> Interval:
+    a, b = as_interval(a), as_interval(b)
+    return _truth(a.lo & b.lo, a.hi & b.hi, a, b)
+
+
+def logical_or(a, b) -> Interval:
+    a, b = as_interval(a), as_interval(b)
+    return _truth(a.lo | b.lo, a.hi | b.hi, a, b)
+
+
+def logical_not(a) -> Interval:
+    a = as_interval(a)
+    return _truth(~a.hi, ~a.lo, a)
+
+
+def certainly(c):
+    """True where a three-valued condition is certainly true."""
+    return as_interval(c).lo
+
+
+def possibly(c):
+    """True where a three-valued condition may be true."""
+    return as_interval(c).hi
+
+
+is_true = certainly
+
+
+def is_false(c):
+    return ~as_interval(c).hi
+
+
+def is_unknown(c):
+    c = as_interval(c)
+    return c.hi & ~c.lo
+
+
+def select_n(which, *cases) -> Interval:
+    """lax.select_n over intervals: the hull of every case whose index `which` may take.
+
+    `which` is a bool/int array or an Interval of them (three-valued when bool).
+    """
+    which = as_interval(which)
+    cases = [as_interval(c) for c in cases]
+    w_lo, w_hi = which.lo.astype(jnp.int32), which.hi.astype(jnp.int32)
+    lo = hi = None
+    flag = which.defined
+    for i, c in enumerate(cases):
+        take = (w_lo <= i) & (i <= w_hi)
+        c_lo = jnp.where(take, c.lo, jnp.nan)
+        c_hi = jnp.where(take, c.hi, jnp.nan)
+        lo = c_lo if lo is None else jnp.fmin(lo, c_lo)
+        hi = c_hi if hi is None else jnp.fmax(hi, c_hi)
+        flag = flag & (c.defined | ~take)
+    return Interval(lo, hi, flag)
+
+
+def where(condition, x, y) -> Interval:
+    """``x`` where certainly true, ``y`` where certainly false, their hull if unknown."""
+    return select_n(condition, y, x)
+
+
+# -------------------------------------------------------------------------- rounding
+
+_F32_EPS = 2.0**-23
+
+
+def widen(a: Interval, ulps: float = 1.0) -> Interval:
+    """Pad outward by about `ulps` units in the last place plus the smallest normal
+    number (XLA flushes subnormals to zero on CPU); ``+inf`` lower ends become finite."""
+    a = as_interval(a)
+    finfo = jnp.finfo(a.lo.dtype)
+    rel = ulps * float(finfo.eps)
+    tiny = float(finfo.tiny)
+    lo = a.lo - (jnp.abs(a.lo) * rel + tiny)
+    hi = a.hi + (jnp.abs(a.hi) * rel + tiny)
+    lo = jnp.where(jnp.isinf(a.lo), jnp.nextafter(a.lo, -jnp.inf), lo)
+    hi = jnp.where(jnp.isinf(a.hi), jnp.nextafter(a.hi, jnp.inf), hi)
+    return Interval(lo, hi, a.defined)
