@@ -516,5 +516,5 @@ def widen(a: Affine, ulps: float = 1.0) -> Affine:
     eps = float(jnp.finfo(a.center.dtype).eps)
     tiny = float(jnp.finfo(a.center.dtype).tiny)
     mag = jnp.abs(a.center) + radius(a)
-    err = a.err + ulps * eps * mag + tiny * (a.n + 2)
+    err = a.err + jnp.minimum(ulps * eps, 1.0) * mag + tiny * (a.n + 2)
     return Affine(a.center, a.dev, err, a.defined)

@@ -344,23 +344,37 @@ def mul(a, b) -> Interval:
 
 def recip(a) -> Interval:
     """1 / a. Contains-zero cases are unbounded (seed Sec. 6.4.4): ``[0, h]`` gives
-    ``[1/h, inf]``, ``[l, 0]`` gives ``[-inf, 1/l]``, zero inside gives the entire line."""
+    ``[1/h, inf]``, ``[l, 0]`` gives ``[-inf, 1/l]``, zero inside (or ``[0, 0]``) gives the
+    entire line. 1/0 is undefined, so `defined` is False wherever 0 is in the box."""
     a = as_interval(a)
     inf = jnp.full_like(a.lo, jnp.inf)
-    lo = 1.0 / a.hi
-    hi = 1.0 / a.lo
-    lo = jnp.where(a.hi == 0, -inf, lo)  # [l, 0] -> [-inf, 1/l] (1/-0 vs 1/+0 ambiguity)
-    hi = jnp.where(a.lo == 0, inf, hi)   # [0, h] -> [1/h, inf]
-    straddle = (a.lo < 0) & (a.hi > 0) | ((a.lo == 0) & (a.hi == 0))
+    lo = jnp.where(a.hi == 0, -inf, 1.0 / a.hi)  # [l, 0] -> [-inf, 1/l] (either zero sign)
+    hi = jnp.where(a.lo == 0, inf, 1.0 / a.lo)   # [0, h] -> [1/h, inf]
+    straddle = ((a.lo < 0) & (a.hi > 0)) | ((a.lo == 0) & (a.hi == 0))
     lo = jnp.where(straddle, -inf, lo)
     hi = jnp.where(straddle, inf, hi)
     lo, hi = _same_nan(lo, hi, a.lo)
-    return _make(lo, hi, a)
+    return _make(lo, hi, a, defined=~contains(a, 0.0))
 
 
 def div(a, b) -> Interval:
-    """Quotient as ``a * (1 / b)``; unbounded when `b` contains 0 (never a hit)."""
-    return mul(a, recip(b))
+    """Quotient. Where `b` excludes 0 the four endpoint quotients are exact to one
+    rounding; where it contains 0 the result is ``a * (1 / b)``, unbounded (an asymptote,
+    never a hit) and flagged undefined."""
+    if a is b:  # x / x is 1 wherever it is defined
+        return where(contains(a, 0.0), mul(a, recip(a)),
+                     _make(*_same_nan(jnp.ones_like(a.lo), jnp.ones_like(a.lo), a.lo), a))
+    a, b = as_interval(a), as_interval(b)
+    q = (a.lo / b.lo, a.lo / b.hi, a.hi / b.lo, a.hi / b.hi)
+    q = [jnp.where(jnp.isnan(v), jnp.zeros_like(v), v) for v in q]  # inf/inf: others bound
+    lo = jnp.minimum(jnp.minimum(q[0], q[1]), jnp.minimum(q[2], q[3]))
+    hi = jnp.maximum(jnp.maximum(q[0], q[1]), jnp.maximum(q[2], q[3]))
+    via_recip = mul(a, recip(b))
+    zero_in_b = contains(b, 0.0)
+    lo = jnp.where(zero_in_b, via_recip.lo, lo)
+    hi = jnp.where(zero_in_b, via_recip.hi, hi)
+    lo, hi = _same_nan(lo, hi, a.lo, b.lo)
+    return _make(lo, hi, a, b, defined=~zero_in_b)
 
 
 def abs(a) -> Interval:  # noqa: A001 - mirrors jnp.abs
@@ -438,8 +452,9 @@ for _f, _n in ((sqrt, "sqrt"), (log, "log"), (cbrt, "cbrt"), (exp, "exp"), (tanh
     _f.__name__ = _n
     _f.__doc__ = f"Interval {_n} (monotone/even rule; domain parts dropped and flagged)."
 
-# Beyond this magnitude f32 cannot resolve a period of sin/cos; answer [-1, 1].
-_TRIG_MAX_ARG = 2.0**16
+# Beyond this magnitude the f32 position of an extremum (error ~|x| 1.5e-7) can miss
+# it by more than an ulp of 1 ((|x| 1.5e-7)^2 / 2); answer [-1, 1] there.
+_TRIG_MAX_ARG = 2.0**11
 
 
 def cos(a) -> Interval:
@@ -476,11 +491,15 @@ def sin(a) -> Interval:
 def tan(a) -> Interval:
     """tan: monotone between poles; the entire line if a pole (k+1/2)*pi is inside."""
     a = as_interval(a)
+    t_lo, t_hi = jnp.tan(a.lo), jnp.tan(a.hi)
     k_lo = jnp.floor((a.lo - 0.5 * _PI) / _PI)
     k_hi = jnp.floor((a.hi - 0.5 * _PI) / _PI)
-    pole = (k_lo != k_hi) | ~((a.hi - a.lo) < _PI) | (mag(a) > _TRIG_MAX_ARG)
-    lo = jnp.where(pole, -jnp.inf, jnp.tan(a.lo))
-    hi = jnp.where(pole, jnp.inf, jnp.tan(a.hi))
+    # f32 multiples of pi drift from the true poles; tan itself jumping from + to - is
+    # the robust sign that a pole lies between the endpoints.
+    pole = ((k_lo != k_hi) | (t_hi < t_lo) | ~((a.hi - a.lo) < _PI)
+            | (mag(a) > _TRIG_MAX_ARG))
+    lo = jnp.where(pole, -jnp.inf, t_lo)
+    hi = jnp.where(pole, jnp.inf, t_hi)
     lo, hi = _same_nan(lo, hi, a.lo, a.hi)
     return _make(lo, hi, a)
 
@@ -510,10 +529,16 @@ def fmod(a, b) -> Interval:
     m = mag(b)
     lo = jnp.where(a.lo >= 0, 0.0, jnp.maximum(a.lo, -m))
     hi = jnp.where(a.hi <= 0, 0.0, jnp.minimum(a.hi, m))
-    q_lo, q_hi = jnp.trunc(a.lo / b.lo), jnp.trunc(a.hi / b.lo)
-    one_period = (b.lo == b.hi) & (q_lo == q_hi) & ((a.lo >= 0) | (a.hi <= 0))
-    lo = jnp.where(one_period, lax.rem(a.lo, b.lo), lo)
-    hi = jnp.where(one_period, lax.rem(a.hi, b.lo), hi)
+    # fmod is exact in floating point; within one period it is x - const, increasing.
+    # No wrap iff the box width plus |remainder at the end nearer 0| stays below |m|
+    # (a margin of 4 ulps of |m| covers the rounding of the width).
+    r_lo, r_hi = lax.rem(a.lo, b.lo), lax.rem(a.hi, b.lo)
+    near_zero = jnp.where(a.lo >= 0, jnp.abs(r_lo), jnp.abs(r_hi))
+    span = (a.hi - a.lo) + near_zero
+    one_period = ((b.lo == b.hi) & ((a.lo >= 0) | (a.hi <= 0)) & (r_lo <= r_hi)
+                  & (span < m * (1.0 - 4.0 * jnp.finfo(m.dtype).eps)))
+    lo = jnp.where(one_period, r_lo, lo)
+    hi = jnp.where(one_period, r_hi, hi)
     # fmod by 0 is undefined: a zero divisor is dropped and flagged, [0, 0] is empty.
     divisor_zero = (b.lo <= 0) & (b.hi >= 0)
     only_zero = jnp.where((b.lo == 0) & (b.hi == 0), jnp.nan, 0.0)
@@ -628,7 +653,7 @@ def widen(a: Interval, ulps: float = 1.0) -> Interval:
     number (XLA flushes subnormals to zero on CPU); ``+inf`` lower ends become finite."""
     a = as_interval(a)
     finfo = jnp.finfo(a.lo.dtype)
-    rel = ulps * float(finfo.eps)
+    rel = jnp.minimum(ulps * float(finfo.eps), 1.0)  # beyond 100% the bound is moot
     tiny = float(finfo.tiny)
     lo = a.lo - (jnp.abs(a.lo) * rel + tiny)
     hi = a.hi + (jnp.abs(a.hi) * rel + tiny)
