@@ -42,6 +42,20 @@ def enclose(f, arithmetic, rounding, blo, bhi, **kw):
     return as_iv(jax.jit(lambda *b: F(*b, **kw))(*boxes))
 
 
+def assert_fast_sound(f, arithmetic, blo, bhi, enc, pts, what):
+    """Fast mode is sound up to float rounding, and the float32 point program rounds
+    differently too (XLA contracts a*b+c into FMAs; transcendentals differ by an ulp
+    between fused and unfused code): allow exactly the rounding budget that outward mode
+    computes for the same box (its extra width on each side), nothing more."""
+    vals = jax.jit(jax.vmap(jax.vmap(lambda p: f(p[0], p[1], p[2]))))(pts)
+    out = enclose(f, arithmetic, "outward", blo, bhi)
+    lo, hi = np.asarray(enc.lo, np.float64), np.asarray(enc.hi, np.float64)
+    with np.errstate(invalid="ignore"):
+        budget = np.nan_to_num((np.asarray(out.hi, np.float64) - hi)
+                               + (lo - np.asarray(out.lo, np.float64)), nan=0.0)
+    assert_encloses(lo - budget, hi + budget, vals, what)
+
+
 @pytest.mark.parametrize("rounding", ["fast", "outward"])
 @pytest.mark.parametrize("arithmetic", ARITH)
 @pytest.mark.parametrize("name", ji.surfaces.names())
@@ -55,11 +69,11 @@ def test_catalogue_soundness(name, arithmetic, rounding):
     enc = enclose(f, arithmetic, rounding, blo, bhi)
     pts = points_in(blo, bhi, 12, rng)
     if rounding == "fast":
-        vals = jax.jit(jax.vmap(jax.vmap(lambda p: f(p[0], p[1], p[2]))))(pts)
+        assert_fast_sound(f, arithmetic, blo, bhi, enc, pts, f"{name}/{arithmetic}/fast")
     else:
         p64 = pts.astype(np.float64)
         vals = reference64.SURFACES[name](p64[..., 0], p64[..., 1], p64[..., 2], s.w)
-    assert_encloses(enc.lo, enc.hi, vals, f"{name}/{arithmetic}/{rounding}")
+        assert_encloses(enc.lo, enc.hi, vals, f"{name}/{arithmetic}/outward")
 
 
 @jax.jit
@@ -102,8 +116,7 @@ def test_library_functions_sound(name, arithmetic):
     blo, bhi = random_boxes((-2.0,) * 3, (2.0,) * 3, 256, rng, point_fraction=0.2)
     enc = enclose(f, arithmetic, "fast", blo, bhi)
     pts = points_in(blo, bhi, 16, rng)
-    vals = jax.jit(jax.vmap(jax.vmap(lambda p: f(p[0], p[1], p[2]))))(pts)
-    assert_encloses(enc.lo, enc.hi, vals, f"{name}/{arithmetic}")
+    assert_fast_sound(f, arithmetic, blo, bhi, enc, pts, f"{name}/{arithmetic}")
 
 
 def test_norm_and_hypot_are_tight_through_the_origin():
@@ -150,7 +163,7 @@ def test_params_arrays_and_intervals_no_retrace():
         return (x - p["c"][0]) ** 2 + (y - p["c"][1]) ** 2 + z * z - p["r"] ** 2
 
     F = jax.jit(ji.extend(f))
-    X = ji.interval(jnp.array([-0.1, 1.0]), jnp.array([0.1, 1.5]))
+    X = ji.interval(jnp.array([-0.1, 0.5]), jnp.array([0.1, 0.7]))
     a = F(X, X, X, params={"c": jnp.array([0.0, 0.0]), "r": jnp.float32(1.0)})
     b = F(X, X, X, params={"c": jnp.array([1.0, 1.0]), "r": jnp.float32(0.5)})
     assert len(calls) == 1

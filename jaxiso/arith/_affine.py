@@ -321,6 +321,14 @@ def div(a, b) -> Affine:
         # x / x is 1 except where x may be 0 (undefined there; keep it honest)
         return _select(ia.contains(to_interval(a), 0.0),
                        _interval_fallback(ia.div(to_interval(a), to_interval(a)), a.n), res)
+    if not isinstance(b, (Affine, Interval)):
+        # a constant divisor scales exactly (one rounding per term); 0 takes recip's path
+        (a,) = _lift(a)
+        b = jnp.asarray(b, a.center.dtype)
+        safe = jnp.where(b == 0, 1.0, b)
+        scaled = Affine(a.center / safe, a.dev / safe[..., None], a.err / jnp.abs(safe),
+                        a.defined)
+        return _select(b != 0, scaled, mul(a, recip(b)))
     a, b = _lift(a, b)
     return mul(a, recip(b))
 

@@ -148,7 +148,7 @@ def check_endpoints(lo, hi, what="interval"):
     """Raise ValueError for NaN endpoints or lo > hi (skipped for traced values)."""
     if isinstance(lo, jax.core.Tracer) or isinstance(hi, jax.core.Tracer):
         return
-    lo_np, hi_np = np.broadcast_arrays(np.asarray(lo), np.asarray(hi))
+    lo_np, hi_np = np.broadcast_arrays(np.atleast_1d(lo), np.atleast_1d(hi))
     if np.isnan(lo_np).any() or np.isnan(hi_np).any():
         raise ValueError(f"{what}: endpoints must not be NaN (an empty input box is not "
                          "allowed; NaN marks empty results only)")
