@@ -122,7 +122,23 @@ def radius(x: Affine):
 def to_interval(x: Affine) -> Interval:
     """Eq. 6.9: ``[center - rad, center + rad]``."""
     r = radius(x)
-    return Interval(x.center - r, x.center + r, x.defined)
+    lo, hi = x.center - r, x.center + r
+    # inf - inf from an overflowed form is not empty: only a NaN centre means empty
+    overflow = ~jnp.isnan(x.center)
+    lo = jnp.where(jnp.isnan(lo) & overflow, -jnp.inf, lo)
+    hi = jnp.where(jnp.isnan(hi) & overflow, jnp.inf, hi)
+    return Interval(lo, hi, x.defined)
+
+
+def _range(x: Affine) -> Interval:
+    """`to_interval` padded by an ulp of ``|center| + rad``: the range the rules work on.
+    Rounding ``center +- rad`` to nearest can cut into the set (far from 0 the centre
+    cannot even hold a small endpoint), so internal conversions always pad."""
+    iv = to_interval(x)
+    finfo = jnp.finfo(jnp.result_type(x.center))
+    pad = float(finfo.eps) * jnp.abs(x.center) + float(finfo.eps) * radius(x) + float(
+        finfo.tiny)  # two terms: their sum could overflow near the float32 maximum
+    return Interval(iv.lo - pad, iv.hi + pad, iv.defined)
 
 
 def from_interval(x, symbol: int | None = None, n: int = 1) -> Affine:
@@ -189,11 +205,25 @@ def _select(mask, a: Affine, b: Affine) -> Affine:
                   jnp.where(mask, a.defined, b.defined))
 
 
+def _finite(x: Affine):
+    # one reduction instead of three: the sum is finite iff every term is
+    return jnp.isfinite(x.center + x.err + jnp.sum(x.dev, axis=-1))
+
+
 def _guard(result: Affine, fallback_iv: Interval) -> Affine:
     """Use the interval fallback wherever the affine result is not finite."""
-    finite = (jnp.isfinite(result.center) & jnp.isfinite(result.err)
-              & jnp.all(jnp.isfinite(result.dev), axis=-1))
-    return _select(finite, result, _interval_fallback(fallback_iv, result.n))
+    return _select(_finite(result), result, _interval_fallback(fallback_iv, result.n))
+
+
+def _guard_unbounded(result: Affine, *inputs: Affine) -> Affine:
+    """Overflow (or inf * 0) in a polynomial operation: the entire line; results of empty
+    (NaN) inputs stay empty."""
+    empty = jnp.isnan(inputs[0].center)
+    for x in inputs[1:]:
+        empty = empty | jnp.isnan(x.center)
+    entire = Affine(jnp.zeros_like(result.center), jnp.zeros_like(result.dev),
+                    jnp.full_like(result.err, jnp.inf), result.defined)
+    return _select(_finite(result) | empty, result, entire)
 
 
 # ------------------------------------------------------------------ affine operations
@@ -201,7 +231,8 @@ def _guard(result: Affine, fallback_iv: Interval) -> Affine:
 
 def add(a, b) -> Affine:
     a, b = _lift(a, b)
-    return Affine(a.center + b.center, a.dev + b.dev, a.err + b.err, _flag(a, b))
+    return _guard_unbounded(
+        Affine(a.center + b.center, a.dev + b.dev, a.err + b.err, _flag(a, b)), a, b)
 
 
 def neg(a) -> Affine:
@@ -214,7 +245,8 @@ def sub(a, b) -> Affine:
         zero = jnp.where(jnp.isnan(a.center), jnp.nan, 0.0)
         return Affine(zero, jnp.zeros_like(a.dev), jnp.zeros_like(a.err), a.defined)
     a, b = _lift(a, b)
-    return Affine(a.center - b.center, a.dev - b.dev, a.err + b.err, _flag(a, b))
+    return _guard_unbounded(
+        Affine(a.center - b.center, a.dev - b.dev, a.err + b.err, _flag(a, b)), a, b)
 
 
 def _is_point(x: Affine):
@@ -225,13 +257,19 @@ def mul(a, b) -> Affine:
     """AF1 product, Eq. 6.15."""
     if a is b:
         return square(a)
+    if not isinstance(a, (Affine, Interval)):
+        a, b = b, a
+    if not isinstance(b, (Affine, Interval)):  # constant factor: an exact affine scaling
+        (a,) = _lift(a)
+        k = jnp.asarray(b, a.center.dtype)
+        return _guard_unbounded(Affine(k * a.center, k[..., None] * a.dev,
+                                       ia._times(jnp.abs(k), a.err), a.defined), a)
     a, b = _lift(a, b)
     c = a.center * b.center
     dev = a.center[..., None] * b.dev + b.center[..., None] * a.dev
     err = (ia._times(jnp.abs(a.center), b.err) + ia._times(jnp.abs(b.center), a.err)
            + ia._times(radius(a), radius(b)))
-    out = Affine(c, dev, err, _flag(a, b))
-    return _guard(out, ia.mul(to_interval(a), to_interval(b)))
+    return _guard_unbounded(Affine(c, dev, err, _flag(a, b)), a, b)
 
 
 def square(a) -> Affine:
@@ -242,8 +280,7 @@ def square(a) -> Affine:
     c = a.center * a.center + half_r2
     dev = 2.0 * a.center[..., None] * a.dev
     err = 2.0 * ia._times(jnp.abs(a.center), a.err) + half_r2
-    out = Affine(c, dev, err, a.defined)
-    return _guard(out, ia.square(to_interval(a)))
+    return _guard_unbounded(Affine(c, dev, err, a.defined), a)
 
 
 def _linearized(x: Affine, alpha, d_lo, d_hi, fallback_iv: Interval, defined) -> Affine:
@@ -306,7 +343,7 @@ def _minrange(x: Affine, g, alpha, iv: Interval, fallback_iv: Interval) -> Affin
 
 def recip(a) -> Affine:
     (a,) = _lift(a)
-    iv = to_interval(a)
+    iv = _range(a)
     positive = iv.lo > 0
     out = _chebyshev(a, lambda v: 1.0 / v, lambda v: -1.0 / (v * v),
                      lambda al: jnp.where(positive, 1.0, -1.0) * jnp.sqrt(-1.0 / al),
@@ -319,8 +356,8 @@ def div(a, b) -> Affine:
         one = jnp.where(jnp.isnan(a.center), jnp.nan, 1.0)
         res = Affine(one, jnp.zeros_like(a.dev), jnp.zeros_like(a.err), a.defined)
         # x / x is 1 except where x may be 0 (undefined there; keep it honest)
-        return _select(ia.contains(to_interval(a), 0.0),
-                       _interval_fallback(ia.div(to_interval(a), to_interval(a)), a.n), res)
+        return _select(ia.contains(_range(a), 0.0),
+                       _interval_fallback(ia.div(_range(a), _range(a)), a.n), res)
     if not isinstance(b, (Affine, Interval)):
         # a constant divisor scales exactly (one rounding per term); 0 takes recip's path
         (a,) = _lift(a)
@@ -337,7 +374,7 @@ def abs(a) -> Affine:  # noqa: A001
     """|x| by its chord: slope ``(|hi|-|lo|)/(hi-lo)``; ``|x| - slope*x`` is >= 0 and
     largest at the ends. Exact (slope +-1) when the range does not straddle 0."""
     (a,) = _lift(a)
-    iv = to_interval(a)
+    iv = _range(a)
     lo, hi = iv.lo, iv.hi
     w = hi - lo
     alpha = jnp.where(w > 0, (jnp.abs(hi) - jnp.abs(lo)) / jnp.where(w > 0, w, 1.0),
@@ -380,7 +417,7 @@ def ipow(a, n: int) -> Affine:
         return a
     if n == 2:
         return square(a)
-    iv = to_interval(a)
+    iv = _range(a)
     g = lambda v: jax.lax.integer_pow(v, n)  # noqa: E731
     dg = lambda v: n * jax.lax.integer_pow(v, n - 1)  # noqa: E731
     fallback = ia.ipow(iv, n)
@@ -404,63 +441,63 @@ def pow(a, p) -> Affine:  # noqa: A001
             pf = float(p_np)
             if pf == int(pf):
                 return ipow(a, int(pf))
-            iv = ia.restrict(to_interval(a), 0.0)
+            iv = ia.restrict(_range(a), 0.0)
             return _chebyshev(a, lambda v: v**pf, lambda v: pf * v ** (pf - 1),
                               lambda al: (al / pf) ** (1.0 / (pf - 1)),
                               (pf > 1) or (pf < 0), iv, ia.pow(iv, pf))
-    p_iv = to_interval(p) if isinstance(p, Affine) else p
-    return _interval_fallback(ia.pow(to_interval(a), p_iv), a.n)
+    p_iv = _range(p) if isinstance(p, Affine) else p
+    return _interval_fallback(ia.pow(_range(a), p_iv), a.n)
 
 
 def sqrt(a) -> Affine:
     (a,) = _lift(a)
-    iv = ia.restrict(to_interval(a), 0.0)
+    iv = ia.restrict(_range(a), 0.0)
     return _chebyshev(a, jnp.sqrt, lambda v: 0.5 / jnp.sqrt(v), lambda al: 0.25 / (al * al),
                       False, iv, ia.sqrt(iv))
 
 
 def log(a) -> Affine:
     (a,) = _lift(a)
-    iv = ia.restrict(to_interval(a), 0.0)
+    iv = ia.restrict(_range(a), 0.0)
     return _chebyshev(a, jnp.log, lambda v: 1.0 / v, lambda al: 1.0 / al, False, iv,
                       ia.log(iv))
 
 
 def exp(a) -> Affine:
     (a,) = _lift(a)
-    iv = to_interval(a)
+    iv = _range(a)
     return _chebyshev(a, jnp.exp, jnp.exp, jnp.log, True, iv, ia.exp(iv))
 
 
 def cosh(a) -> Affine:
     (a,) = _lift(a)
-    iv = to_interval(a)
+    iv = _range(a)
     return _chebyshev(a, jnp.cosh, jnp.sinh, jnp.arcsinh, True, iv, ia.cosh(iv))
 
 
 def sinh(a) -> Affine:
     (a,) = _lift(a)
-    iv = to_interval(a)
+    iv = _range(a)
     return _minrange(a, jnp.sinh, jnp.cosh(ia.mig(iv)), iv, ia.sinh(iv))
 
 
 def tanh(a) -> Affine:
     (a,) = _lift(a)
-    iv = to_interval(a)
+    iv = _range(a)
     t = jnp.tanh(ia.mag(iv))
     return _minrange(a, jnp.tanh, 1.0 - t * t, iv, ia.tanh(iv))
 
 
 def atan(a) -> Affine:
     (a,) = _lift(a)
-    iv = to_interval(a)
+    iv = _range(a)
     m = ia.mag(iv)
     return _minrange(a, jnp.arctan, 1.0 / (1.0 + m * m), iv, ia.atan(iv))
 
 
 def cbrt(a) -> Affine:
     (a,) = _lift(a)
-    iv = to_interval(a)
+    iv = _range(a)
     m = ia.mag(iv)
     return _minrange(a, jnp.cbrt, 1.0 / (3.0 * jnp.cbrt(m * m)), iv, ia.cbrt(iv))
 
@@ -468,7 +505,7 @@ def cbrt(a) -> Affine:
 def _via_interval(fn):
     def rule(*args):
         args = _lift(*args)
-        return _interval_fallback(fn(*[to_interval(x) for x in args]), args[0].n)
+        return _interval_fallback(fn(*[_range(x) for x in args]), args[0].n)
 
     rule.__name__ = fn.__name__
     rule.__doc__ = f"{fn.__name__} through Interval (correlation not kept)."
@@ -490,7 +527,7 @@ fmod = _via_interval(ia.fmod)
 def _compare(fn):
     def rule(a, b):
         a, b = _lift(a, b)
-        return fn(to_interval(a), to_interval(b))
+        return fn(_range(a), _range(b))
 
     rule.__name__ = fn.__name__
     rule.__doc__ = f"Three-valued {fn.__name__} on the affine ranges (an Interval of bools)."
@@ -504,7 +541,7 @@ def select_n(which, *cases) -> Affine:
     """Exact case where `which` is certain; the interval hull elsewhere."""
     which = ia.as_interval(which)
     cases = _lift(*cases)
-    hull = _interval_fallback(ia.select_n(which, *[to_interval(c) for c in cases]),
+    hull = _interval_fallback(ia.select_n(which, *[_range(c) for c in cases]),
                               cases[0].n)
     out = hull
     certain = which.lo == which.hi

@@ -204,7 +204,7 @@ def _convert_element_type(x, *, new_dtype, **params):
     if isinstance(x, Affine):
         if jnp.issubdtype(new_dtype, jnp.floating):
             return Affine(cast(x.center), cast(x.dev), cast(x.err), x.defined)
-        x = aa.to_interval(x)
+        x = aa._range(x)
     # monotone non-decreasing for float->float, bool->number, float->int (truncation)
     return Interval(cast(x.lo), cast(x.hi), x.defined)
 
@@ -229,7 +229,7 @@ def _reduce_sum(x, **params):
 def _reduce_monotone(reducer):
     def rule(x, **params):
         axes = _axes_kw(params)
-        iv = aa.to_interval(x) if isinstance(x, Affine) else x
+        iv = aa._range(x) if isinstance(x, Affine) else x
         out = Interval(reducer(iv.lo, axes), reducer(iv.hi, axes), jnp.all(iv.defined, axes))
         return aa.from_interval(out, None, x.n) if isinstance(x, Affine) else out
 
@@ -396,14 +396,14 @@ _EXP_LIKE = ("exp", "exp2", "expm1", "sinh", "cosh")
 
 
 def _exp_ulps(x):
-    x = aa.to_interval(x) if isinstance(x, Affine) else ia.as_interval(x)
+    x = aa._range(x) if isinstance(x, Affine) else ia.as_interval(x)
     m = ia.mag(x)
     return _TRANSCENDENTAL_ULPS + 2.0 * jnp.where(jnp.isfinite(m), m, 0.0)
 
 
 def _pow_ulps(x, y):
     """XLA computes x**y as exp(y log x): its error grows with |y log x| ulps."""
-    x, y = (aa.to_interval(v) if isinstance(v, Affine) else ia.as_interval(v) for v in (x, y))
+    x, y = (aa._range(v) if isinstance(v, Affine) else ia.as_interval(v) for v in (x, y))
     with jax.numpy_dtype_promotion("standard"):
         logs = jnp.maximum(jnp.abs(jnp.log(jnp.abs(x.lo))), jnp.abs(jnp.log(jnp.abs(x.hi))))
     logs = jnp.where(jnp.isfinite(logs), logs, 0.0)
@@ -576,6 +576,9 @@ def extend(f: Callable, arithmetic: str = "interval", rounding: str = "fast",
         size = math.prod(batch)
         flat = [_reshape(c, (size,)) for c in lifted]
         out = jax.vmap(eval_point)(flat)
+        # outward affine: one more ulp so that the caller's to_interval (centre +- rad,
+        # rounded to nearest) still encloses
+        out = _round(ctx, out, 1.0) if isinstance(out, Affine) else out
         return _reshape(out, batch)
 
     return F
@@ -603,12 +606,12 @@ def _lift_coordinates(coords, ctx: _Context, n_symbols):
             c = _flush_subnormals_outward(c)
         ivs.append(c)
     if ctx.arithmetic == "interval":
-        return [aa.to_interval(c) if isinstance(c, Affine) else ia.as_interval(c)
+        return [aa._range(c) if isinstance(c, Affine) else ia.as_interval(c)
                 for c in ivs]
     given = [c.n for c in ivs if isinstance(c, Affine)]
     if given:
         n = given[0]
-        return [aa.as_affine(c, n) for c in ivs]
+        return [_round(ctx, aa.as_affine(c, n), 1.0) for c in ivs]
     k = sum(isinstance(c, Interval) for c in ivs)
     n = max(1, k) if n_symbols is None else int(n_symbols)
     if n < k:
@@ -620,14 +623,15 @@ def _lift_coordinates(coords, ctx: _Context, n_symbols):
             s += 1
         else:
             out.append(aa.as_affine(c, n))
-    return out
+    # outward: the midpoint/radius of each box were rounded; pad them by an ulp
+    return [_round(ctx, c, 1.0) for c in out]
 
 
 def _lift_param(p, ctx: _Context, lifted):
     if ctx.arithmetic == "affine" and isinstance(p, Interval):
         return aa.from_interval(p, None, lifted[0].n)
     if ctx.arithmetic == "interval" and isinstance(p, Affine):
-        return aa.to_interval(p)
+        return aa._range(p)
     return p
 
 

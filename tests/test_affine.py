@@ -1,0 +1,113 @@
+"""Reduced affine arithmetic (AF1): Eq. 6.15 by hand, conversions, correlation, rules."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxiso import aa, ia
+from jaxiso.arith import Affine
+
+
+def form(c, devs, err=0.0):
+    return Affine(jnp.float32(c), jnp.asarray(devs, jnp.float32), jnp.float32(err))
+
+
+def test_conversions_eq_6_8_and_6_9():
+    x = aa.from_interval(ia.interval(1.0, 3.0), symbol=1, n=3)
+    assert float(x.center) == 2.0 and x.dev.tolist() == [0.0, 1.0, 0.0]
+    assert float(x.err) == 0.0
+    back = aa.to_interval(x)
+    assert (float(back.lo), float(back.hi)) == (1.0, 3.0)
+    e = aa.from_interval(ia.interval(-1.0, 1.0), symbol=None, n=2)
+    assert e.dev.tolist() == [0.0, 0.0] and float(e.err) == 1.0
+    u = aa.from_interval(ia.interval(0.0, jnp.inf), symbol=0, n=1)
+    assert float(u.err) == jnp.inf and u.dev.tolist() == [0.0]
+    with pytest.raises(ValueError):
+        aa.from_interval(ia.interval(0.0, 1.0), symbol=3, n=3)
+
+
+def test_mul_is_eq_6_15():
+    # x = 2 + 1 e1 + 0.5 e3(err), y = -1 + 0.25 e1 + 1 e2 + 0.25 err
+    x = form(2.0, [1.0, 0.0], 0.5)
+    y = form(-1.0, [0.25, 1.0], 0.25)
+    p = aa.mul(x, y)
+    assert float(p.center) == -2.0                                  # x0 y0
+    assert p.dev.tolist() == [2.0 * 0.25 + (-1.0) * 1.0, 2.0 * 1.0]  # x0 y_i + y0 x_i
+    # |x0| y_err + |y0| x_err + rad(x) rad(y) = 2*.25 + 1*.5 + 1.5*1.5
+    assert float(p.err) == pytest.approx(0.5 + 0.5 + 2.25)
+
+
+def test_affine_ops_exact_and_correlated():
+    x = form(1.0, [0.5, 0.0])
+    y = form(0.0, [0.0, 2.0])
+    s = aa.sub(aa.add(x, y), y)         # (x + y) - y == x exactly
+    assert float(s.center) == 1.0 and s.dev.tolist() == [0.5, 0.0]
+    assert float(s.err) == 0.0
+    assert float(aa.to_interval(aa.sub(x, x)).hi) == 0.0
+    k = aa.mul(3.0, x)
+    assert float(k.center) == 3.0 and k.dev.tolist() == [1.5, 0.0]
+
+
+def test_square_is_tighter_than_self_product():
+    x = form(0.0, [1.0])
+    sq = aa.to_interval(aa.square(x))
+    pr = aa.to_interval(aa.mul(x, form(0.0, [1.0])))
+    assert float(sq.lo) >= -0.5 and float(sq.hi) == 1.0
+    assert float(sq.hi - sq.lo) < float(pr.hi - pr.lo)
+
+
+NONLINEAR = {
+    "exp": (aa.exp, jnp.exp, (-2.0, 1.5)), "log": (aa.log, jnp.log, (0.1, 4.0)),
+    "sqrt": (aa.sqrt, jnp.sqrt, (0.0, 4.0)), "recip+": (aa.recip, lambda v: 1 / v, (0.5, 3.0)),
+    "recip-": (aa.recip, lambda v: 1 / v, (-3.0, -0.5)),
+    "ipow4": (lambda v: aa.ipow(v, 4), lambda v: v**4, (-1.0, 2.0)),
+    "ipow3": (lambda v: aa.ipow(v, 3), lambda v: v**3, (-1.0, 2.0)),
+    "ipow5+": (lambda v: aa.ipow(v, 5), lambda v: v**5, (0.5, 2.0)),
+    "pow2.5": (lambda v: aa.pow(v, 2.5), lambda v: v**2.5, (0.0, 2.0)),
+    "pow0.3": (lambda v: aa.pow(v, 0.3), lambda v: v**0.3, (0.1, 2.0)),
+    "cosh": (aa.cosh, jnp.cosh, (-1.0, 2.0)), "sinh": (aa.sinh, jnp.sinh, (-1.0, 2.0)),
+    "tanh": (aa.tanh, jnp.tanh, (-1.0, 2.0)), "atan": (aa.atan, jnp.arctan, (-3.0, 1.0)),
+    "cbrt": (aa.cbrt, jnp.cbrt, (-1.0, 8.0)), "abs": (aa.abs, jnp.abs, (-1.0, 3.0)),
+    "sin": (aa.sin, jnp.sin, (-1.0, 3.0)), "cos": (aa.cos, jnp.cos, (-1.0, 3.0)),
+    "max": (lambda v: aa.maximum(v, 0.5), lambda v: jnp.maximum(v, 0.5), (-1.0, 2.0)),
+    "min": (lambda v: aa.minimum(v, 0.5), lambda v: jnp.minimum(v, 0.5), (-1.0, 2.0)),
+}
+
+
+@pytest.mark.parametrize("name", sorted(NONLINEAR))
+def test_nonlinear_rules_enclose_along_the_symbol(name):
+    """g(x(e)) for e in [-1, 1] lies inside the affine result evaluated at the same e
+    (a stronger property than interval inclusion: the correlation is right too)."""
+    fn, point, (lo, hi) = NONLINEAR[name]
+    x = aa.from_interval(ia.interval(lo, hi), symbol=0, n=1)
+    out = jax.jit(fn)(x)
+    e = np.linspace(-1.0, 1.0, 2001, dtype=np.float32)
+    xs = np.float32(x.center) + np.float32(x.dev[0]) * e
+    vals = np.asarray(jax.jit(point)(xs), np.float64)
+    line = float(out.center) + float(out.dev[0]) * e.astype(np.float64)
+    slack = float(out.err) + 4e-7 * (np.abs(vals) + 1e-30)
+    finite = np.isfinite(vals)
+    assert (np.abs(vals - line)[finite] <= slack[finite]).all(), name
+    # and it is a real linearisation, not just the interval: error below the range width
+    rng = np.nanmax(vals[finite]) - np.nanmin(vals[finite])
+    if name not in ("sin", "cos"):     # these fall back to Interval by design
+        assert float(out.err) < 0.75 * rng + 1e-6, name
+
+
+def test_where_keeps_branch_exactly_when_certain():
+    x = form(1.0, [0.5])
+    c = aa.gt(x, 0.0)                       # certainly true on [0.5, 1.5]
+    out = aa.where(c, aa.mul(2.0, x), form(-9.0, [0.0]))
+    assert out.dev.tolist() == [1.0] and float(out.center) == 2.0
+    u = aa.where(aa.gt(x, 1.0), x, form(-9.0, [0.0]))   # unknown: hull of both
+    iv = aa.to_interval(u)
+    assert float(iv.lo) <= -9.0 and float(iv.hi) >= 1.5
+
+
+def test_empty_propagates_in_affine():
+    e = aa.sqrt(form(-5.0, [1.0]))           # wholly negative: empty
+    assert np.isnan(float(e.center))
+    for op in (lambda v: aa.mul(v, form(1.0, [1.0])), aa.square, aa.exp,
+               lambda v: aa.add(v, 1.0), lambda v: aa.mul(v, 0.0)):
+        assert np.isnan(float(op(e).center))
