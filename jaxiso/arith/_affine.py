@@ -25,13 +25,14 @@ Empty results carry NaN (as for Interval); unbounded ones an infinite `err`.
 from __future__ import annotations
 
 import dataclasses
+import sys
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from . import _interval as ia
-from ._interval import Interval
+from ._interval import Interval, OperatorsMixin
 
 __all__ = [
     "Affine", "from_interval", "to_interval", "as_affine", "radius",
@@ -44,8 +45,8 @@ __all__ = [
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True, eq=False)
-class Affine:
-    """A batch of AF1 affine forms.
+class Affine(OperatorsMixin):
+    """A batch of AF1 affine forms (operators as for `Interval`).
 
     Attributes:
       center: [*S] central values.
@@ -84,31 +85,6 @@ class Affine:
     def __repr__(self):
         return (f"Affine(center={self.center!r}, dev={self.dev!r}, err={self.err!r}, "
                 f"defined={self.defined!r})")
-
-    def __add__(self, o): return add(self, o)
-    def __radd__(self, o): return add(o, self)
-    def __sub__(self, o): return sub(self, o)
-    def __rsub__(self, o): return sub(o, self)
-    def __mul__(self, o): return mul(self, o)
-    def __rmul__(self, o): return mul(o, self)
-    def __truediv__(self, o): return div(self, o)
-    def __rtruediv__(self, o): return div(o, self)
-    def __neg__(self): return neg(self)
-    def __pos__(self): return self
-    def __abs__(self): return abs(self)
-
-    def __pow__(self, exponent):
-        if isinstance(exponent, (int, np.integer)):
-            return ipow(self, int(exponent))
-        return pow(self, exponent)
-
-    def __lt__(self, o): return lt(self, o)
-    def __le__(self, o): return le(self, o)
-    def __gt__(self, o): return gt(self, o)
-    def __ge__(self, o): return ge(self, o)
-
-    def __bool__(self):
-        raise TypeError("an Affine form has no single truth value")
 
 
 # ----------------------------------------------------------------------- conversion
@@ -563,3 +539,6 @@ def widen(a: Affine, ulps: float = 1.0) -> Affine:
     mag = jnp.abs(a.center) + radius(a)
     err = a.err + jnp.minimum(ulps * eps, 1.0) * mag + tiny * (a.n + 2)
     return Affine(a.center, a.dev, err, a.defined)
+
+
+Affine._ops = sys.modules[__name__]

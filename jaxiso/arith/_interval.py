@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -47,9 +48,41 @@ __all__ = [
 _PI = math.pi
 
 
+class OperatorsMixin:
+    """Python operators dispatching to the pure functions of the module in `_ops`
+    (shared by `Interval` and `Affine`; comparisons are three-valued)."""
+
+    _ops = None  # the arithmetic module; set after it is defined
+
+    def __add__(self, o): return self._ops.add(self, o)
+    def __radd__(self, o): return self._ops.add(o, self)
+    def __sub__(self, o): return self._ops.sub(self, o)
+    def __rsub__(self, o): return self._ops.sub(o, self)
+    def __mul__(self, o): return self._ops.mul(self, o)
+    def __rmul__(self, o): return self._ops.mul(o, self)
+    def __truediv__(self, o): return self._ops.div(self, o)
+    def __rtruediv__(self, o): return self._ops.div(o, self)
+    def __neg__(self): return self._ops.neg(self)
+    def __pos__(self): return self
+    def __abs__(self): return self._ops.abs(self)
+    def __lt__(self, o): return self._ops.lt(self, o)
+    def __le__(self, o): return self._ops.le(self, o)
+    def __gt__(self, o): return self._ops.gt(self, o)
+    def __ge__(self, o): return self._ops.ge(self, o)
+
+    def __pow__(self, exponent):
+        if isinstance(exponent, (int, np.integer)):
+            return self._ops.ipow(self, int(exponent))
+        return self._ops.pow(self, exponent)
+
+    def __bool__(self):
+        raise TypeError(f"a {type(self).__name__} has no single truth value; use "
+                        "certainly(), possibly() or contains()")
+
+
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True, eq=False)
-class Interval:
+class Interval(OperatorsMixin):
     """A batch of closed intervals ``[lo, hi]``.
 
     Attributes:
@@ -93,40 +126,13 @@ class Interval:
     def __repr__(self):
         return f"Interval(lo={self.lo!r}, hi={self.hi!r}, defined={self.defined!r})"
 
-    # arithmetic
-    def __add__(self, other): return add(self, other)
-    def __radd__(self, other): return add(other, self)
-    def __sub__(self, other): return sub(self, other)
-    def __rsub__(self, other): return sub(other, self)
-    def __mul__(self, other): return mul(self, other)
-    def __rmul__(self, other): return mul(other, self)
-    def __truediv__(self, other): return div(self, other)
-    def __rtruediv__(self, other): return div(other, self)
-    def __neg__(self): return neg(self)
-    def __pos__(self): return self
-    def __abs__(self): return abs(self)
-
-    def __pow__(self, exponent):
-        if isinstance(exponent, (int, np.integer)):
-            return ipow(self, int(exponent))
-        return pow(self, exponent)
-
-    def __rpow__(self, base): return pow(base, self)
-
-    # three-valued comparisons and logic
-    def __lt__(self, other): return lt(self, other)
-    def __le__(self, other): return le(self, other)
-    def __gt__(self, other): return gt(self, other)
-    def __ge__(self, other): return ge(self, other)
+    # three-valued logic (comparisons and arithmetic come from OperatorsMixin)
     def __and__(self, other): return logical_and(self, other)
     def __rand__(self, other): return logical_and(other, self)
     def __or__(self, other): return logical_or(self, other)
     def __ror__(self, other): return logical_or(other, self)
     def __invert__(self): return logical_not(self)
-
-    def __bool__(self):
-        raise TypeError("an Interval has no single truth value; use certainly(), "
-                        "possibly() or contains()")
+    def __rpow__(self, base): return pow(base, self)
 
 
 def _bcast(x, like: Interval):
@@ -358,23 +364,26 @@ def recip(a) -> Interval:
 
 
 def div(a, b) -> Interval:
-    """Quotient. Where `b` excludes 0 the four endpoint quotients are exact to one
-    rounding; where it contains 0 the result is ``a * (1 / b)``, unbounded (an asymptote,
-    never a hit) and flagged undefined."""
+    """Quotient: the hull of endpoint quotients ``a_i / b_j``, each rounded once. Where `b`
+    contains 0 the matching reciprocal end is infinite (`recip`) and that candidate is
+    ``a_i * (+-inf)`` with ``0 * inf = 0``: unbounded (an asymptote, never a hit) and
+    flagged undefined."""
     if a is b:  # x / x is 1 wherever it is defined
         return where(contains(a, 0.0), mul(a, recip(a)),
                      _make(*_same_nan(jnp.ones_like(a.lo), jnp.ones_like(a.lo), a.lo), a))
     a, b = as_interval(a), as_interval(b)
-    q = (a.lo / b.lo, a.lo / b.hi, a.hi / b.lo, a.hi / b.hi)
-    q = [jnp.where(jnp.isnan(v), jnp.zeros_like(v), v) for v in q]  # inf/inf: others bound
+    r = recip(b)  # r.lo pairs with b.hi, r.hi with b.lo
+
+    def quotient(u, v, r_end):
+        direct = u / v
+        return jnp.where(jnp.isinf(r_end) | jnp.isnan(direct), _times(u, r_end), direct)
+
+    q = (quotient(a.lo, b.hi, r.lo), quotient(a.lo, b.lo, r.hi),
+         quotient(a.hi, b.hi, r.lo), quotient(a.hi, b.lo, r.hi))
     lo = jnp.minimum(jnp.minimum(q[0], q[1]), jnp.minimum(q[2], q[3]))
     hi = jnp.maximum(jnp.maximum(q[0], q[1]), jnp.maximum(q[2], q[3]))
-    via_recip = mul(a, recip(b))
-    zero_in_b = contains(b, 0.0)
-    lo = jnp.where(zero_in_b, via_recip.lo, lo)
-    hi = jnp.where(zero_in_b, via_recip.hi, hi)
     lo, hi = _same_nan(lo, hi, a.lo, b.lo)
-    return _make(lo, hi, a, b, defined=~zero_in_b)
+    return _make(lo, hi, a, r)
 
 
 def abs(a) -> Interval:  # noqa: A001 - mirrors jnp.abs
@@ -457,35 +466,31 @@ for _f, _n in ((sqrt, "sqrt"), (log, "log"), (cbrt, "cbrt"), (exp, "exp"), (tanh
 _TRIG_MAX_ARG = 2.0**11
 
 
-def cos(a) -> Interval:
-    """cos: the endpoint values, widened to 1 / -1 where the interval holds 2k*pi /
-    (2k+1)*pi."""
-    a = as_interval(a)
-    c_lo, c_hi = jnp.cos(a.lo), jnp.cos(a.hi)
-    lo, hi = jnp.minimum(c_lo, c_hi), jnp.maximum(c_lo, c_hi)
-    two_pi = 2.0 * _PI
-    has_max = jnp.ceil(a.lo / two_pi) * two_pi <= a.hi
-    has_min = jnp.ceil((a.lo - _PI) / two_pi) * two_pi + _PI <= a.hi
-    wide = ~((a.hi - a.lo) < two_pi) | (mag(a) > _TRIG_MAX_ARG)
-    hi = jnp.where(has_max | wide, 1.0, hi)
-    lo = jnp.where(has_min | wide, -1.0, lo)
-    lo, hi = _same_nan(lo, hi, a.lo, a.hi)
-    return _make(lo, hi, a)
+def periodic(fn, max_at: float, min_at: float, max_value: float, min_value: float,
+             period: float = 2.0 * _PI):
+    """Rule of a periodic function with one maximum `max_value` (at phase `max_at`) and
+    one minimum (at `min_at`) per period: the endpoint values, widened to the extreme value wherever
+    the interval holds an extremum; the whole range beyond `_TRIG_MAX_ARG`."""
+
+    def rule(a) -> Interval:
+        a = as_interval(a)
+        f_lo, f_hi = fn(a.lo), fn(a.hi)
+        lo, hi = jnp.minimum(f_lo, f_hi), jnp.maximum(f_lo, f_hi)
+        has = lambda phase: jnp.ceil((a.lo - phase) / period) * period + phase <= a.hi  # noqa: E731
+        wide = ~((a.hi - a.lo) < period) | (mag(a) > _TRIG_MAX_ARG)
+        hi = jnp.where(has(max_at) | wide, max_value, hi)
+        lo = jnp.where(has(min_at) | wide, min_value, lo)
+        lo, hi = _same_nan(lo, hi, a.lo, a.hi)
+        return _make(lo, hi, a)
+
+    return rule
 
 
-def sin(a) -> Interval:
-    """sin: endpoint values from jnp.sin, extrema located as for cos(x - pi/2)."""
-    a = as_interval(a)
-    s_lo, s_hi = jnp.sin(a.lo), jnp.sin(a.hi)
-    lo, hi = jnp.minimum(s_lo, s_hi), jnp.maximum(s_lo, s_hi)
-    two_pi = 2.0 * _PI
-    has_max = jnp.ceil((a.lo - 0.5 * _PI) / two_pi) * two_pi + 0.5 * _PI <= a.hi
-    has_min = jnp.ceil((a.lo + 0.5 * _PI) / two_pi) * two_pi - 0.5 * _PI <= a.hi
-    wide = ~((a.hi - a.lo) < two_pi) | (mag(a) > _TRIG_MAX_ARG)
-    hi = jnp.where(has_max | wide, 1.0, hi)
-    lo = jnp.where(has_min | wide, -1.0, lo)
-    lo, hi = _same_nan(lo, hi, a.lo, a.hi)
-    return _make(lo, hi, a)
+cos = periodic(jnp.cos, 0.0, _PI, 1.0, -1.0)
+sin = periodic(jnp.sin, 0.5 * _PI, -0.5 * _PI, 1.0, -1.0)
+cos.__name__, sin.__name__ = "cos", "sin"
+cos.__doc__ = "Interval cos (periodic rule: extrema at 2k pi and (2k+1) pi)."
+sin.__doc__ = "Interval sin (periodic rule: extrema at pi/2 + 2k pi and -pi/2 + 2k pi)."
 
 
 def tan(a) -> Interval:
@@ -660,3 +665,6 @@ def widen(a: Interval, ulps: float = 1.0) -> Interval:
     lo = jnp.where(jnp.isinf(a.lo), jnp.nextafter(a.lo, -jnp.inf), lo)
     hi = jnp.where(jnp.isinf(a.hi), jnp.nextafter(a.hi, jnp.inf), hi)
     return Interval(lo, hi, a.defined)
+
+
+Interval._ops = sys.modules[__name__]
