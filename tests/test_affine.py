@@ -107,7 +107,13 @@ def test_where_keeps_branch_exactly_when_certain():
 
 def test_empty_propagates_in_affine():
     e = aa.sqrt(form(-5.0, [1.0]))           # wholly negative: empty
-    assert np.isnan(float(e.center))
+    assert np.isnan(float(e.err)) and np.isnan(float(aa.to_interval(e).lo))
     for op in (lambda v: aa.mul(v, form(1.0, [1.0])), aa.square, aa.exp,
-               lambda v: aa.add(v, 1.0), lambda v: aa.mul(v, 0.0)):
-        assert np.isnan(float(op(e).center))
+               lambda v: aa.add(v, 1.0), lambda v: aa.mul(v, 0.0),
+               lambda v: aa.mul(v, form(0.0, [0.0])), lambda v: aa.sub(v, v)):
+        out = aa.to_interval(op(e))
+        assert np.isnan(float(out.lo)) and np.isnan(float(out.hi))
+    # an overflowed centre with a finite error term is the entire line, not empty
+    big = form(3e38, [3e38])
+    s = aa.to_interval(aa.add(big, big))
+    assert float(s.hi) == np.inf

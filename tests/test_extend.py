@@ -105,6 +105,11 @@ TRICKY = {
     "div": lambda x, y, z: x / (y * y + 0.5) - jnp.exp(z) + jnp.log(z * z + 1.0),
     "fmod_floor": lambda x, y, z: jnp.fmod(x * 3.0, 1.0) + jnp.floor(y) + jnp.sign(z),
     "powers": lambda x, y, z: jnp.abs(x) ** 2.5 + jnp.cbrt(y) + z**-2,
+    "gather_reduce": lambda x, y, z: (jnp.stack([x, y, z])[jnp.array([0, 2])].sum()
+                                      + jnp.max(jnp.stack([x, y * y, z]))
+                                      - jnp.min(jnp.concatenate([jnp.stack([x]),
+                                                                 jnp.stack([y, z])]))),
+    "dynamic_index": lambda x, y, z: jnp.stack([x, y, z])[jnp.array(1)] * x,
 }
 
 

@@ -19,7 +19,9 @@ accumulated error term. ``n = 1`` is the seed's float3 form (Algorithm 6).
 * Comparisons return the three-valued `Interval` of bools of the interval module; `where`
   keeps the chosen branch exactly and takes the hull where the condition is unknown.
 
-Empty results carry NaN (as for Interval); unbounded ones an infinite `err`.
+Empty results carry a NaN error term (and centre); an overflowed form whose centre became
+NaN but whose error term did not is the entire line, not empty. Unbounded forms have an
+infinite `err`.
 """
 
 from __future__ import annotations
@@ -90,6 +92,10 @@ class Affine(OperatorsMixin):
 # ----------------------------------------------------------------------- conversion
 
 
+def _is_empty(x: Affine):
+    return jnp.isnan(x.err)
+
+
 def radius(x: Affine):
     """rad(x) = sum |dev_i| + err (Eq. 6.10 with the AF1 error term)."""
     return jnp.sum(jnp.abs(x.dev), axis=-1) + x.err
@@ -99,8 +105,8 @@ def to_interval(x: Affine) -> Interval:
     """Eq. 6.9: ``[center - rad, center + rad]``."""
     r = radius(x)
     lo, hi = x.center - r, x.center + r
-    # inf - inf from an overflowed form is not empty: only a NaN centre means empty
-    overflow = ~jnp.isnan(x.center)
+    # inf - inf from an overflowed form is not empty: only a NaN error term means empty
+    overflow = ~_is_empty(x)
     lo = jnp.where(jnp.isnan(lo) & overflow, -jnp.inf, lo)
     hi = jnp.where(jnp.isnan(hi) & overflow, jnp.inf, hi)
     return Interval(lo, hi, x.defined)
@@ -114,6 +120,7 @@ def _range(x: Affine) -> Interval:
     finfo = jnp.finfo(jnp.result_type(x.center))
     pad = float(finfo.eps) * jnp.abs(x.center) + float(finfo.eps) * radius(x) + float(
         finfo.tiny)  # two terms: their sum could overflow near the float32 maximum
+    pad = jnp.where(jnp.isnan(x.center), 0.0, pad)  # overflowed: iv is already entire
     return Interval(iv.lo - pad, iv.hi + pad, iv.defined)
 
 
@@ -194,12 +201,14 @@ def _guard(result: Affine, fallback_iv: Interval) -> Affine:
 def _guard_unbounded(result: Affine, *inputs: Affine) -> Affine:
     """Overflow (or inf * 0) in a polynomial operation: the entire line; results of empty
     (NaN) inputs stay empty."""
-    empty = jnp.isnan(inputs[0].center)
+    empty = _is_empty(inputs[0])
     for x in inputs[1:]:
-        empty = empty | jnp.isnan(x.center)
+        empty = empty | _is_empty(x)
     entire = Affine(jnp.zeros_like(result.center), jnp.zeros_like(result.dev),
                     jnp.full_like(result.err, jnp.inf), result.defined)
-    return _select(_finite(result) | empty, result, entire)
+    out = _select(_finite(result) | empty, result, entire)
+    # 0 * (empty) must stay empty: the products above treat 0 * NaN as 0
+    return Affine(out.center, out.dev, jnp.where(empty, jnp.nan, out.err), out.defined)
 
 
 # ------------------------------------------------------------------ affine operations
@@ -207,8 +216,9 @@ def _guard_unbounded(result: Affine, *inputs: Affine) -> Affine:
 
 def add(a, b) -> Affine:
     a, b = _lift(a, b)
-    return _guard_unbounded(
-        Affine(a.center + b.center, a.dev + b.dev, a.err + b.err, _flag(a, b)), a, b)
+    # no overflow guard needed: an overflowed centre with a finite error term reads as
+    # the entire line in `to_interval` / `_range`
+    return Affine(a.center + b.center, a.dev + b.dev, a.err + b.err, _flag(a, b))
 
 
 def neg(a) -> Affine:
@@ -218,11 +228,10 @@ def neg(a) -> Affine:
 
 def sub(a, b) -> Affine:
     if a is b:
-        zero = jnp.where(jnp.isnan(a.center), jnp.nan, 0.0)
-        return Affine(zero, jnp.zeros_like(a.dev), jnp.zeros_like(a.err), a.defined)
+        zero = jnp.where(_is_empty(a), jnp.nan, 0.0)
+        return Affine(zero, jnp.zeros_like(a.dev), zero, a.defined)
     a, b = _lift(a, b)
-    return _guard_unbounded(
-        Affine(a.center - b.center, a.dev - b.dev, a.err + b.err, _flag(a, b)), a, b)
+    return Affine(a.center - b.center, a.dev - b.dev, a.err + b.err, _flag(a, b))
 
 
 def _is_point(x: Affine):
@@ -329,8 +338,8 @@ def recip(a) -> Affine:
 
 def div(a, b) -> Affine:
     if a is b:
-        one = jnp.where(jnp.isnan(a.center), jnp.nan, 1.0)
-        res = Affine(one, jnp.zeros_like(a.dev), jnp.zeros_like(a.err), a.defined)
+        one = jnp.where(_is_empty(a), jnp.nan, 1.0)
+        res = Affine(one, jnp.zeros_like(a.dev), one - 1.0, a.defined)
         # x / x is 1 except where x may be 0 (undefined there; keep it honest)
         return _select(ia.contains(_range(a), 0.0),
                        _interval_fallback(ia.div(_range(a), _range(a)), a.n), res)
@@ -385,8 +394,8 @@ def ipow(a, n: int) -> Affine:
     n = int(n)
     (a,) = _lift(a)
     if n == 0:
-        one = jnp.where(jnp.isnan(a.center), jnp.nan, 1.0)
-        return Affine(one, jnp.zeros_like(a.dev), jnp.zeros_like(a.err), a.defined)
+        one = jnp.where(_is_empty(a), jnp.nan, 1.0)
+        return Affine(one, jnp.zeros_like(a.dev), one - 1.0, a.defined)
     if n < 0:
         return recip(ipow(a, -n))
     if n == 1:

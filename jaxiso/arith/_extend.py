@@ -429,7 +429,7 @@ def _round(ctx: _Context, out, ulps: float):
 
 def _same_var_truth(x, value: bool):
     shape = _shape_of(x)
-    empty = ia.is_empty(x) if isinstance(x, Interval) else jnp.isnan(x.center)
+    empty = ia.is_empty(x) if isinstance(x, Interval) else aa._is_empty(x)
     truth = jnp.full(shape, value) & ~empty  # empty boxes: certainly false
     return Interval(truth, truth, x.defined)
 
