@@ -263,3 +263,41 @@ def test_affine_inputs_and_symbols():
     assert float(aa.to_interval(G(box, box, box)).hi) == pytest.approx(1.0)
     G1 = ji.extend(lambda x, y, z: x - x, "affine")
     assert float(aa.to_interval(G1(box, box, box)).hi) == 0.0
+
+
+def test_review_regressions_cancelling_sums_ints_casts_switch_inf_power():
+    """Cases found in review: each failed (unsound or crashed) before its fix."""
+    from jax import lax
+
+    one = ji.interval(1.0, 1.0)
+    # outward rounding of a sum/dot scales with the terms, not the cancelled result
+    f = lambda x: jnp.sum(jnp.stack([jnp.float32(1e8), x, jnp.float32(-1e8)]))
+    g = lambda x: jnp.dot(jnp.stack([jnp.float32(1e8), x, jnp.float32(1e8)]),
+                          jnp.array([1.0, 1.0, -1.0]))
+    for fn in (f, g):
+        for arithmetic in ARITH:
+            out = as_iv(ji.extend(fn, arithmetic, "outward")(one))
+            assert float(out.lo) <= 1.0 <= float(out.hi), (fn, arithmetic)
+    # integer division truncates; integer remainder works
+    q = ji.extend(lambda x: lax.div(x.astype(jnp.int32), 2).astype(jnp.float32))(
+        ji.interval(7.0, 7.5))
+    assert (float(q.lo), float(q.hi)) == (3.0, 3.0)
+    r = ji.extend(lambda x: (x.astype(jnp.int32) % 3).astype(jnp.float32))(
+        ji.interval(6.0, 7.5))
+    assert float(r.lo) <= 0.0 and float(r.hi) >= 1.0
+    # a precision-changing cast of an affine form is enclosed as a whole
+    c = as_iv(ji.extend(lambda x: x.astype(jnp.bfloat16).astype(jnp.float32), "affine",
+                        "outward")(ji.interval(1.0025, 1.0045)))
+    assert float(c.lo) <= 1.0 and float(c.hi) >= 1.0078125
+    rp = ji.extend(lambda x: lax.reduce_precision(x, exponent_bits=8, mantissa_bits=7))(
+        ji.interval(1.0025, 1.0045))
+    assert float(rp.hi) >= 1.0078125
+    # lax.switch on a box-dependent integer index in affine mode
+    sw = lambda x: lax.switch(jnp.floor(x).astype(jnp.int32),
+                              [lambda v: v, lambda v: 2 * v, lambda v: -v], x)
+    out = as_iv(ji.extend(sw, "affine")(ji.interval(1.25, 1.75)))
+    assert float(out.lo) <= 2.5 and float(out.hi) >= 3.5
+    # infinite / NaN exponents do not crash
+    for p in (jnp.inf, jnp.nan):
+        for arithmetic in ARITH:
+            ji.extend(lambda x: x**p, arithmetic)(ji.interval(0.5, 2.0))

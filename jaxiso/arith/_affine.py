@@ -424,6 +424,8 @@ def pow(a, p) -> Affine:  # noqa: A001
         p_np = np.asarray(p)
         if p_np.ndim == 0:
             pf = float(p_np)
+            if not np.isfinite(pf):
+                return _interval_fallback(ia.pow(_range(a), pf), a.n)
             if pf == int(pf):
                 return ipow(a, int(pf))
             iv = ia.restrict(_range(a), 0.0)
@@ -540,12 +542,15 @@ def where(condition, x, y) -> Affine:
     return select_n(condition, y, x)
 
 
-def widen(a: Affine, ulps: float = 1.0) -> Affine:
-    """Pad the error term by `ulps` of every term's magnitude (plus the smallest normal),
-    covering the rounding of the centre and of each deviation."""
+def widen(a: Affine, ulps: float = 1.0, scale=None) -> Affine:
+    """Pad the error term by `ulps` of every term's magnitude (plus `scale`, the inputs'
+    magnitude for sums, and the smallest normal), covering the rounding of the centre and
+    of each deviation."""
     eps = float(jnp.finfo(a.center.dtype).eps)
     tiny = float(jnp.finfo(a.center.dtype).tiny)
     mag = jnp.abs(a.center) + radius(a)
+    if scale is not None:
+        mag = mag + scale
     err = a.err + jnp.minimum(ulps * eps, 1.0) * mag + tiny * (a.n + 2)
     return Affine(a.center, a.dev, err, a.defined)
 

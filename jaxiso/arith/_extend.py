@@ -84,9 +84,22 @@ def _both(name, ia_rule, aa_rule=None, ulps=None):
         _ULPS[name] = ulps
 
 
+def _div_interval(a, b):
+    a, b = ia.as_interval(a), ia.as_interval(b)
+    if jnp.issubdtype(a.lo.dtype, jnp.integer):
+        # lax.div on integers truncates toward 0: monotone in the real quotient
+        q = ia.div(Interval(a.lo.astype(jnp.float32), a.hi.astype(jnp.float32), a.defined),
+                   Interval(b.lo.astype(jnp.float32), b.hi.astype(jnp.float32), b.defined))
+        big = float(jnp.iinfo(a.lo.dtype).max)
+        lo = jnp.clip(jnp.trunc(q.lo), -big, big).astype(a.lo.dtype)
+        hi = jnp.clip(jnp.trunc(q.hi), -big, big).astype(a.lo.dtype)
+        return Interval(lo, hi, q.defined)
+    return ia.div(a, b)
+
+
 # IEEE-correctly rounded basic operations: half an ulp, padded to 1.
 for _name, _ia, _aa in (("add", ia.add, aa.add), ("sub", ia.sub, aa.sub),
-                        ("mul", ia.mul, aa.mul), ("div", ia.div, aa.div),
+                        ("mul", ia.mul, aa.mul), ("div", _div_interval, aa.div),
                         ("sqrt", ia.sqrt, aa.sqrt), ("square", ia.square, aa.square)):
     _both(_name, _ia, _aa, ulps=2.0)
 
@@ -106,6 +119,15 @@ def _round_rule(x, **params):
 
 
 _RULES["interval"]["round"] = _RULES["affine"]["round"] = _round_rule
+
+
+def _reduce_precision_rule(x, **params):
+    fn = ia.monotone_increasing(lambda v: lax.reduce_precision(v, **params))
+    return aa._via_interval(fn)(x) if isinstance(x, Affine) else fn(x)
+
+
+_RULES["interval"]["reduce_precision"] = _RULES["affine"]["reduce_precision"] = (
+    _reduce_precision_rule)
 _both("rem", ia.fmod, aa.fmod, ulps=1.0)
 
 # Transcendentals from XLA: a few ulps (measured worst cases are in tests/benchmarks).
@@ -176,7 +198,7 @@ _STRUCTURAL = {
     "broadcast_in_dim": 1, "reshape": 1, "squeeze": 1, "expand_dims": 1,
     "transpose": 1, "rev": 1, "slice": 1, "dynamic_slice": 1, "gather": 1,
     "copy": 1, "copy_p": 1, "concatenate": None, "stack": None, "pad": 2,
-    "reduce_precision": 1, "real": 1, "optimization_barrier": None,
+    "real": 1, "optimization_barrier": None,
 }
 
 
@@ -202,9 +224,14 @@ def _structural(prim, params, invals):
 def _convert_element_type(x, *, new_dtype, **params):
     cast = lambda v: lax.convert_element_type(v, new_dtype)  # noqa: E731
     if isinstance(x, Affine):
-        if jnp.issubdtype(new_dtype, jnp.floating):
-            return Affine(cast(x.center), cast(x.dev), cast(x.err), x.defined)
-        x = aa._range(x)
+        if jnp.dtype(new_dtype) == x.center.dtype:
+            return x
+        # a precision change rounds centre + sum(dev e) as a whole, not term by term:
+        # go through the (monotone) interval conversion
+        iv = aa._range(x)
+        out = Interval(cast(iv.lo), cast(iv.hi), iv.defined)
+        return aa.from_interval(out, None, x.n) if jnp.issubdtype(new_dtype, jnp.floating) \
+            else out
     # monotone non-decreasing for float->float, bool->number, float->int (truncation)
     return Interval(cast(x.lo), cast(x.hi), x.defined)
 
@@ -361,7 +388,12 @@ def _apply(eqn, invals, ctx: _Context):
         return [_same_var_truth(invals[0], _SAME_VAR_TRUTH[name])]
     if name in _STRUCTURAL:
         return [_structural(prim, params, invals)]
-    rule = ctx.rules.get(name)
+    # Affine forms carry reals; integer and boolean values stay Intervals, so an
+    # equation whose lifted inputs are all Intervals uses the interval rule.
+    rules = ctx.rules
+    if ctx.arithmetic == "affine" and not any(isinstance(x, Affine) for x in invals):
+        rules = _RULES["interval"]
+    rule = rules.get(name)
     if rule is None:
         raise NotImplementedError(
             f"jaxiso.extend: no {ctx.arithmetic} rule for the JAX primitive '{name}'. "
@@ -370,7 +402,25 @@ def _apply(eqn, invals, ctx: _Context):
     out = rule(*invals, **params)
     if prim.multiple_results:
         return list(out)
-    return [_round(ctx, out, _ulps_of(name, params, invals))]
+    scale = _term_scale(name, params, invals) if ctx.outward else None
+    return [_round(ctx, out, _ulps_of(name, params, invals), scale)]
+
+
+def _term_scale(name, params, invals):
+    """For sums and dots the rounding error scales with the terms, not the (possibly
+    cancelled) result: the sum of the terms' magnitudes."""
+    if name == "reduce_sum":
+        x = aa._range(invals[0]) if isinstance(invals[0], Affine) else invals[0]
+        return jnp.sum(ia.mag(x), tuple(params["axes"]))
+    if name == "dot_general":
+        left = _is_lifted(invals[0])
+        box, const = (invals[0], invals[1]) if left else (invals[1], invals[0])
+        m = ia.mag(aa._range(box) if isinstance(box, Affine) else box)
+        big = jnp.finfo(m.dtype).max
+        m, c = jnp.minimum(m, big), jnp.abs(const).astype(m.dtype)
+        return (lax.dot_general(m, c, **params) if left
+                else lax.dot_general(c, m, **params))
+    return None
 
 
 def _ulps_of(name, params, invals):
@@ -419,12 +469,14 @@ def _shape_of(x):
     return np.shape(x)
 
 
-def _round(ctx: _Context, out, ulps: float):
+def _round(ctx: _Context, out, ulps: float, scale=None):
     if not ctx.outward or (isinstance(ulps, float) and ulps == 0.0) or not _is_lifted(out):
         return out
     if isinstance(out, Interval) and not jnp.issubdtype(out.lo.dtype, jnp.floating):
         return out
-    return ia.widen(out, ulps) if isinstance(out, Interval) else aa.widen(out, ulps)
+    if isinstance(out, Interval):
+        return ia.widen(out, ulps, scale)
+    return aa.widen(out, ulps, scale)
 
 
 def _same_var_truth(x, value: bool):

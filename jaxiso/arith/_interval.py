@@ -426,7 +426,7 @@ def pow(a, b) -> Interval:  # noqa: A001 - mirrors jnp.pow
     """
     if not isinstance(b, Interval) and not isinstance(b, jax.core.Tracer):
         b_np = np.asarray(b)
-        if b_np.ndim == 0 and float(b_np) == int(b_np):
+        if b_np.ndim == 0 and np.isfinite(b_np) and float(b_np) == int(b_np):
             return ipow(a, int(b_np))
     exponent_traced = isinstance(b, Interval) or isinstance(b, jax.core.Tracer)
     a, b = as_interval(a), as_interval(b)
@@ -524,6 +524,11 @@ def clamp(lower, x, upper) -> Interval:
     return minimum(maximum(x, lower), upper)
 
 
+def _eps(dtype) -> float:
+    """Machine epsilon of a float dtype; 0 for integers (their arithmetic is exact)."""
+    return float(jnp.finfo(dtype).eps) if jnp.issubdtype(dtype, jnp.floating) else 0.0
+
+
 def fmod(a, b) -> Interval:
     """C fmod / lax.rem: ``a - trunc(a / b) * b``, sign of `a`, ``|r| < |b|``.
 
@@ -541,7 +546,7 @@ def fmod(a, b) -> Interval:
     near_zero = jnp.where(a.lo >= 0, jnp.abs(r_lo), jnp.abs(r_hi))
     span = (a.hi - a.lo) + near_zero
     one_period = ((b.lo == b.hi) & ((a.lo >= 0) | (a.hi <= 0)) & (r_lo <= r_hi)
-                  & (span < m * (1.0 - 4.0 * jnp.finfo(m.dtype).eps)))
+                  & (span < m * (1.0 - 4.0 * _eps(m.dtype))))
     lo = jnp.where(one_period, r_lo, lo)
     hi = jnp.where(one_period, r_hi, hi)
     # fmod by 0 is undefined: a zero divisor is dropped and flagged, [0, 0] is empty.
@@ -653,15 +658,19 @@ def where(condition, x, y) -> Interval:
 _F32_EPS = 2.0**-23
 
 
-def widen(a: Interval, ulps: float = 1.0) -> Interval:
-    """Pad outward by about `ulps` units in the last place plus the smallest normal
-    number (XLA flushes subnormals to zero on CPU); ``+inf`` lower ends become finite."""
+def widen(a: Interval, ulps: float = 1.0, scale=None) -> Interval:
+    """Pad outward by about `ulps` units in the last place of each endpoint (or of
+    `scale`, when larger: the terms' magnitude for sums) plus the smallest normal number
+    (XLA flushes subnormals to zero on CPU); ``+inf`` lower ends become finite."""
     a = as_interval(a)
     finfo = jnp.finfo(a.lo.dtype)
     rel = jnp.minimum(ulps * float(finfo.eps), 1.0)  # beyond 100% the bound is moot
     tiny = float(finfo.tiny)
-    lo = a.lo - (jnp.abs(a.lo) * rel + tiny)
-    hi = a.hi + (jnp.abs(a.hi) * rel + tiny)
+    m_lo, m_hi = jnp.abs(a.lo), jnp.abs(a.hi)
+    if scale is not None:
+        m_lo, m_hi = jnp.maximum(m_lo, scale), jnp.maximum(m_hi, scale)
+    lo = a.lo - (m_lo * rel + tiny)
+    hi = a.hi + (m_hi * rel + tiny)
     lo = jnp.where(jnp.isinf(a.lo), jnp.nextafter(a.lo, -jnp.inf), lo)
     hi = jnp.where(jnp.isinf(a.hi), jnp.nextafter(a.hi, jnp.inf), hi)
     return Interval(lo, hi, a.defined)
