@@ -655,9 +655,6 @@ def where(condition, x, y) -> Interval:
 
 # -------------------------------------------------------------------------- rounding
 
-_F32_EPS = 2.0**-23
-
-
 def widen(a: Interval, ulps: float = 1.0, scale=None) -> Interval:
     """Pad outward by about `ulps` units in the last place of each endpoint (or of
     `scale`, when larger: the terms' magnitude for sums) plus the smallest normal number
