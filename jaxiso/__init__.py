@@ -1,14 +1,30 @@
 """jaxiso: ray tracing implicit surfaces in JAX (after Knoll 2009).
 
-Public API so far: the inclusion arithmetic layer (`Interval`, `Affine`, `extend`,
-`register_rule`) and the catalogue of test surfaces (`surfaces`).
+Layers: inclusion arithmetic (`Interval`, `Affine`, `extend`, `register_rule`), scenes
+(`ImplicitSurface`, CSG), and the render layer (`Camera`, `Rays`, `Hits`, `intersect`,
+`render`, `save_png`). `surfaces` is the catalogue of the seed's test surfaces.
 """
 
 from . import arith
 from .arith import Affine, Interval, aa, extend, ia, interval, register_rule
-from .implicit import surfaces
+from .implicit import ImplicitSurface, surfaces
+from .render import (
+    Camera,
+    Hits,
+    Image,
+    Light,
+    Rays,
+    Shading,
+    from_tiles,
+    intersect,
+    render,
+    save_png,
+    to_tiles,
+)
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 __all__ = ["Interval", "interval", "Affine", "extend", "register_rule", "ia", "aa",
-           "arith", "surfaces", "__version__"]
+           "arith", "surfaces", "ImplicitSurface", "Camera", "Rays", "Hits", "Image",
+           "Light", "Shading", "intersect", "render", "save_png", "to_tiles",
+           "from_tiles", "__version__"]

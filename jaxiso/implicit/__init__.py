@@ -1,5 +1,6 @@
-"""Arbitrary implicit surfaces (seed ch. 6): the catalogue of test surfaces."""
+"""Arbitrary implicit surfaces (seed ch. 6): scenes, kernels and the surface catalogue."""
 
 from . import surfaces
+from ._scene import ImplicitSurface
 
-__all__ = ["surfaces"]
+__all__ = ["surfaces", "ImplicitSurface"]

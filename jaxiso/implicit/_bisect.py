@@ -1,0 +1,169 @@
+"""Stackless interval bisection along rays (seed Sec. 6.4-6.5, Algorithm 7).
+
+A ray segment is reparameterised to s in [0, 1]. The kernels only need a *box test*
+``test(s0, s1) -> BoxTest`` that says whether the implicit may vanish for s in
+[s0, s1] (an inclusion extension evaluated on that piece of the ray).
+
+t-bisection (per ray, `t_bisect`) keeps the current piece as an integer position k at
+depth d: the piece is [k 2^-d, (k+1) 2^-d]. Instead of a stack, moving on to the next
+piece pops the levels where both halves were visited: those are the trailing zero bits
+of k + 1 (the seed tests the same thing with a float modulus). Integer positions keep
+pieces exact down to depth 30, below float32 resolution of s.
+
+K-bisection (per packet, `k_bisect`) marches all rays of a packet through common slabs
+of the dominant axis K in lockstep (Sec. 6.4.3): one shared (k, d) and per-ray masks.
+"""
+
+from __future__ import annotations
+
+import typing
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+MAX_DEPTH = 30  # int32 positions stay exact
+
+
+class BoxTest(typing.NamedTuple):
+    """Outcome of an inclusion test on one piece of a ray (scalars or [P]).
+
+    possible: the enclosure contains an isovalue (a root may lie in the piece).
+    finite: the enclosure is bounded (an unbounded one, e.g. at a division asymptote,
+      is bisected but never registers a hit, Sec. 6.4.4).
+    small: the enclosure is narrower than the range tolerance delta (a hit criterion).
+    """
+
+    possible: jax.Array
+    finite: jax.Array
+    small: jax.Array
+
+
+class Result(typing.NamedTuple):
+    s: jax.Array      # [..] hit parameter in [0, 1] (midpoint of the final piece), inf if none
+    hit: jax.Array    # bool
+    steps: jax.Array  # int32 iterations
+
+
+def depth_for(length, eps):
+    """Eq. 6.19: the depth whose pieces are at most eps long, d = ceil(log2(L / eps)),
+    clamped to [0, MAX_DEPTH]."""
+    d = jnp.ceil(jnp.log2(jnp.maximum(length, 1e-30) / eps))
+    return jnp.clip(d, 0, MAX_DEPTH).astype(jnp.int32)
+
+
+def _trailing_zeros(k):
+    """Number of trailing zero bits of a positive int32."""
+    return lax.population_count((k & -k) - 1)
+
+
+def t_bisect(test, d_max, active, max_steps: int) -> Result:
+    """Stackless bisection of one ray's segment (call under vmap for a packet).
+
+    Args:
+      test: ``test(s0, s1) -> BoxTest`` for this ray.
+      d_max: int32 depth at which a possible piece counts as a hit (Eq. 6.19).
+      active: bool, False for rays that miss the domain.
+      max_steps: static bound on loop iterations (a ray that runs out reports no hit).
+    """
+
+    def cond(state):
+        k, d, done, hit, steps = state
+        return ~done & (steps < max_steps)
+
+    def body(state):
+        k, d, done, hit, steps = state
+        w = jnp.exp2(-d.astype(jnp.float32))
+        s0 = k.astype(jnp.float32) * w
+        s1 = (k + 1).astype(jnp.float32) * w
+        r = test(s0, s1)
+        accept = r.possible & r.finite & ((d >= d_max) | r.small)
+        descend = r.possible & ~accept & (d < d_max)
+        # move on: k + 1, then pop the levels whose both halves are done
+        k_next = k + 1
+        pop = jnp.minimum(_trailing_zeros(k_next), d)
+        k_next, d_next = k_next >> pop, d - pop
+        k = jnp.where(accept, k, jnp.where(descend, 2 * k, k_next))
+        d = jnp.where(accept, d, jnp.where(descend, d + 1, d_next))
+        finished = accept | (~descend & (d_next == 0))
+        return k, d, done | finished, hit | accept, steps + 1
+
+    init = (jnp.int32(0), jnp.int32(0), ~active, jnp.bool_(False), jnp.int32(0))
+    k, d, done, hit, steps = lax.while_loop(cond, body, init)
+    hit = hit & done
+    w = jnp.exp2(-d.astype(jnp.float32))
+    s = jnp.where(hit, (k.astype(jnp.float32) + 0.5) * w, jnp.inf)
+    return Result(s, hit, steps)
+
+
+def k_bisect(test, k_enter, k_exit, d_max, active, max_steps: int) -> Result:
+    """Packet bisection in lockstep along the dominant axis K (Sec. 6.4.3).
+
+    The packet's K range [K0, K1] (union of its rays' ranges) is bisected with one shared
+    (k, d); piece k at depth d is the slab [K0 + k w, K0 + (k+1) w] with w = (K1-K0) 2^-d,
+    visited in the marching direction. Each ray tests its own part of the slab.
+
+    Args:
+      test: ``test(s0, s1) -> BoxTest`` vectorised over the packet, with s in the rays'
+        own [0, 1] segment parameters ([P] each).
+      k_enter, k_exit: [P] the rays' K coordinates at s = 0 and s = 1.
+      d_max: [P] int32 per-ray depth for the precision eps (Eq. 6.16-6.17: the packet
+        uses the deepest).
+      active: [P] bool.
+    Returns per-ray `Result` ([P]).
+    """
+    big = jnp.float32(3e38)
+    lo = jnp.minimum(k_enter, k_exit)
+    hi = jnp.maximum(k_enter, k_exit)
+    forward = jnp.sum(jnp.where(active, k_exit - k_enter, 0.0)) >= 0.0
+    K0 = jnp.where(forward, jnp.min(jnp.where(active, lo, big)),
+                   jnp.max(jnp.where(active, hi, -big)))
+    K1 = jnp.where(forward, jnp.max(jnp.where(active, hi, -big)),
+                   jnp.min(jnp.where(active, lo, big)))
+    span = K1 - K0
+    dk = k_exit - k_enter
+    safe_dk = jnp.where(dk == 0.0, 1.0, dk)
+    # the slab width at depth d is |span| 2^-d; a ray needs its piece (in s) <= its eps
+    ratio = jnp.abs(span) / jnp.maximum(jnp.abs(dk), 1e-30)
+    d_need = jnp.where(active, d_max + jnp.ceil(jnp.log2(jnp.maximum(ratio, 1.0))), 0)
+    d_stop = jnp.clip(jnp.max(d_need), 0, MAX_DEPTH).astype(jnp.int32)
+
+    def pieces(k, d):
+        w = jnp.exp2(-d.astype(jnp.float32))
+        a = K0 + span * (k.astype(jnp.float32) * w)
+        b = K0 + span * ((k + 1).astype(jnp.float32) * w)
+        s_a = (a - k_enter) / safe_dk
+        s_b = (b - k_enter) / safe_dk
+        s0 = jnp.clip(jnp.minimum(s_a, s_b), 0.0, 1.0)
+        s1 = jnp.clip(jnp.maximum(s_a, s_b), 0.0, 1.0)
+        inside = (jnp.maximum(s_a, s_b) >= 0.0) & (jnp.minimum(s_a, s_b) <= 1.0)
+        return s0, s1, inside
+
+    def cond(state):
+        k, d, live, hit, s_hit, steps = state
+        return jnp.any(live) & (steps < max_steps)
+
+    def body(state):
+        k, d, live, hit, s_hit, steps = state
+        s0, s1, inside = pieces(k, d)
+        r = test(s0, s1)
+        cand = live & inside & r.possible
+        accept = cand & r.finite & ((d >= d_stop) | r.small)
+        hit = hit | accept
+        s_hit = jnp.where(accept, 0.5 * (s0 + s1), s_hit)
+        live = live & ~accept
+        descend = jnp.any(cand & ~accept) & (d < d_stop)
+        k_next = k + 1
+        pop = jnp.minimum(_trailing_zeros(k_next), d)
+        k_next, d_next = k_next >> pop, d - pop
+        end = ~descend & (d_next == 0)
+        live = live & ~end
+        k = jnp.where(descend, 2 * k, k_next)
+        d = jnp.where(descend, d + 1, d_next)
+        return k, d, live, hit, s_hit, steps + 1
+
+    n = k_enter.shape
+    init = (jnp.int32(0), jnp.int32(0), active, jnp.zeros(n, bool),
+            jnp.full(n, jnp.inf, jnp.float32), jnp.int32(0))
+    k, d, live, hit, s_hit, steps = lax.while_loop(cond, body, init)
+    return Result(s_hit, hit, jnp.broadcast_to(steps, n))

@@ -1,0 +1,123 @@
+"""Evaluating a user's implicit on pieces of rays, in points, intervals or affine forms.
+
+The user writes ``f(x, y, z)``, ``f(x, y, z, w)``, ``f(x, y, z, params)`` or
+``f(x, y, z, w, params)`` in plain jax.numpy; `as_field` turns any of these into
+``g(x, y, z, w, params)``. A piece of a ray, ``p + D s`` for s in [s0, s1], becomes
+boxes in the chosen arithmetic: intervals per axis, or affine forms sharing one noise
+symbol (the seed's float3 RAA with n = 1), which keeps x, y and z exactly correlated.
+"""
+
+from __future__ import annotations
+
+import inspect
+
+import jax
+import jax.numpy as jnp
+
+from ..arith import Affine, Interval, aa, extend, ia
+
+METHODS = ("t-bisection", "k-bisection", "mitchell", "sampling", "sphere")
+
+
+def as_field(f, has_params: bool):
+    """``g(x, y, z, w, params)`` calling f with the arguments it declares."""
+    try:
+        sig = inspect.signature(f)
+        kinds = (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+        n = sum(p.kind in kinds for p in sig.parameters.values())
+        var = any(p.kind == inspect.Parameter.VAR_POSITIONAL for p in sig.parameters.values())
+    except (TypeError, ValueError):
+        n, var = 4, False
+    if var:
+        n = 5 if has_params else 4
+    if n == 3:
+        if has_params:
+            raise TypeError("f takes (x, y, z) but params were given; declare "
+                            "f(x, y, z, params) or f(x, y, z, w, params)")
+        return lambda x, y, z, w, params: f(x, y, z)
+    if n == 4:
+        if has_params:
+            return lambda x, y, z, w, params: f(x, y, z, params)
+        return lambda x, y, z, w, params: f(x, y, z, w)
+    if n == 5:
+        if not has_params:
+            raise TypeError("f takes (x, y, z, w, params) but no params were given")
+        return lambda x, y, z, w, params: f(x, y, z, w, params)
+    raise TypeError(f"f must take (x, y, z[, w][, params]); it takes {n} positional "
+                    "arguments")
+
+
+def ray_boxes(p, D, s0, s1, arithmetic: str):
+    """Boxes enclosing the piece ``p + D s``, s in [s0, s1]: a list of 3 Intervals or
+    3 single-symbol Affine forms (p, D: [..., 3]; s0, s1: [...])."""
+    if arithmetic == "interval":
+        a = p + D * s0[..., None]
+        b = p + D * s1[..., None]
+        lo, hi = jnp.minimum(a, b), jnp.maximum(a, b)
+        return [Interval(lo[..., i], hi[..., i]) for i in range(3)]
+    sm = 0.5 * (s0 + s1)
+    sr = 0.5 * (s1 - s0)
+    c = p + D * sm[..., None]
+    zero = jnp.zeros_like(sm)
+    return [Affine(c[..., i], (D[..., i] * sr)[..., None], zero) for i in range(3)]
+
+
+def enclosure(F, boxes, w, params, arithmetic: str) -> Interval:
+    """The inclusion F(boxes) as an Interval."""
+    out = F(*boxes, w, params=params)
+    return aa.to_interval(out) if isinstance(out, Affine) else out
+
+
+def contains_any(r: Interval, isovalues):
+    """possible [...] (an isovalue lies in r) and finite [...] (r is bounded)."""
+    iso = jnp.asarray(isovalues)
+    possible = jnp.any((r.lo[..., None] <= iso) & (iso <= r.hi[..., None]), axis=-1)
+    return possible, jnp.isfinite(r.hi - r.lo)
+
+
+def extended(g, arithmetic: str, rounding: str):
+    """The inclusion extension of g (one noise symbol in affine mode)."""
+    if arithmetic not in ("interval", "affine"):
+        raise ValueError(f"arithmetic must be 'interval' or 'affine', got {arithmetic!r}")
+    return extend(g, arithmetic, rounding, n_symbols=1 if arithmetic == "affine" else None)
+
+
+def clip_to_box(rays_o, rays_d, lo, hi, t_min, t_max):
+    """Slab test: (t_enter, t_exit, inside) per ray ([P] each)."""
+    d = rays_d
+    inv = 1.0 / jnp.where(d == 0.0, 1.0, d)
+    ta = (lo - rays_o) * inv
+    tb = (hi - rays_o) * inv
+    near = jnp.where(d == 0.0, -jnp.inf, jnp.minimum(ta, tb))
+    far = jnp.where(d == 0.0, jnp.inf, jnp.maximum(ta, tb))
+    # a ray parallel to a slab and outside it never enters
+    outside = (d == 0.0) & ((rays_o < lo) | (rays_o > hi))
+    t0 = jnp.maximum(jnp.max(near, axis=-1), t_min)
+    t1 = jnp.minimum(jnp.min(far, axis=-1), t_max)
+    inside = (t0 <= t1) & ~jnp.any(outside, axis=-1) & jnp.isfinite(t1 - t0)
+    return t0, t1, inside
+
+
+def point_normal(g, p, w, params, direction, stencil=None):
+    """Unit normal from the gradient of g at points p [..., 3] (jax.grad by default,
+    central differences of width `stencil` otherwise, Sec. 6.4.7). Where the gradient
+    vanishes or is not finite the normal faces the ray: -direction / |direction|."""
+    if stencil is None:
+        def grad_one(q):
+            return jnp.stack(jax.grad(lambda q: g(q[0], q[1], q[2], w, params))(q))
+        grad = jax.vmap(grad_one)(p.reshape(-1, 3)).reshape(p.shape)
+    else:
+        h = jnp.float32(stencil)
+        eye = jnp.eye(3, dtype=p.dtype) * h
+        def at(q):
+            return g(q[..., 0], q[..., 1], q[..., 2], w, params)
+        grad = jnp.stack([(at(p + eye[i]) - at(p - eye[i])) / (2 * h) for i in range(3)],
+                         axis=-1)
+    norm = jnp.linalg.norm(grad, axis=-1, keepdims=True)
+    ok = (norm > 0) & jnp.all(jnp.isfinite(grad), axis=-1, keepdims=True) & jnp.isfinite(norm)
+    facing = -direction / jnp.linalg.norm(direction, axis=-1, keepdims=True)
+    return jnp.where(ok, grad / jnp.where(ok, norm, 1.0), facing)
+
+
+__all__ = ["METHODS", "as_field", "ray_boxes", "enclosure", "contains_any", "extended",
+           "clip_to_box", "point_normal", "ia"]
