@@ -99,7 +99,8 @@ class ImplicitSurface:
 
     def intersect_packet(self, rays, t_min, t_max, *, method=None, arithmetic=None,
                          eps=None, delta=None, rounding="fast", normals=None,
-                         max_steps: int | None = None, **method_options) -> Hits:
+                         max_steps: int | None = None, lanes: int | None = None,
+                         **method_options) -> Hits:
         method = self.method if method is None else method
         arithmetic = self.arithmetic if arithmetic is None else arithmetic
         eps = self.eps if eps is None else jnp.asarray(eps, jnp.float32)
@@ -115,7 +116,7 @@ class ImplicitSurface:
         if method in ("t-bisection", "k-bisection"):
             F = extended(g, arithmetic, rounding)
             res = _interval_method(method, F, g, scene, p, D, inside, eps, delta,
-                                   arithmetic, max_steps)
+                                   arithmetic, max_steps, lanes)
         else:
             from . import _baselines
             res = _baselines.run(method, g, scene, p, D, inside, eps, arithmetic,
@@ -124,9 +125,8 @@ class ImplicitSurface:
         return finish_hits(g, self, rays, t_raw, res.hit, res.steps, normals)
 
 
-def _interval_method(method, F, g, scene, p, D, inside, eps, delta, arithmetic, max_steps):
-    length = jnp.linalg.norm(D, axis=-1)
-    d_max = _bisect.depth_for(length, eps)
+def _interval_method(method, F, g, scene, p, D, inside, eps, delta, arithmetic, max_steps,
+                     lanes=None):
     tol = jnp.float32(-1.0) if delta is None else jnp.float32(delta)
 
     def test(p, D, s0, s1):
@@ -135,13 +135,24 @@ def _interval_method(method, F, g, scene, p, D, inside, eps, delta, arithmetic, 
         possible, finite = contains_any(r, scene.isovalues)
         return _bisect.BoxTest(possible, finite, (r.hi - r.lo) < tol)
 
+    return run_bisection(method, test, p, D, inside, eps, max_steps, lanes)
+
+
+def run_bisection(method, test, p, D, inside, eps, max_steps=None, lanes=None):
+    """Drive t- or K-bisection over a packet with a box test ``test(p, D, s0, s1)``."""
+    length = jnp.linalg.norm(D, axis=-1)
+    d_max = _bisect.depth_for(length, eps)
     if max_steps is None:
         max_steps = 64 * _bisect.MAX_DEPTH
+    if method == "t-bisection" and lanes is not None:
+        return _bisect.t_bisect_lanes(test, p, D, d_max, inside, lanes, max_steps)
     if method == "t-bisection":
         def one(p, D, d_max, active):
             return _bisect.t_bisect(functools.partial(test, p, D), d_max, active, max_steps)
         return jax.vmap(one)(p, D, d_max, inside)
-    return _k_bisection(test, p, D, d_max, inside, length, max_steps)
+    if method == "k-bisection":
+        return _k_bisection(test, p, D, d_max, inside, length, max_steps)
+    raise ValueError(f"unknown bisection method {method!r}")
 
 
 def _k_bisection(test, p, D, d_max, inside, length, max_steps):
@@ -162,15 +173,20 @@ def _k_bisection(test, p, D, d_max, inside, length, max_steps):
     return jax.tree_util.tree_map(lambda a, b: jnp.where(coherent, a, b), res_k, res_t)
 
 
-def finish_hits(g, scene, rays, t_raw, hit, steps, normals) -> Hits:
-    """Which isovalue, a differentiable t and the normal of each hit."""
+def finish_hits(g, scene, rays, t_raw, hit, steps, normals, which=None) -> Hits:
+    """Which isovalue (unless `which` is given: then g vanishes on every part), a
+    differentiable t and the normal of each hit."""
     o, d = rays.origin, rays.direction
     safe_t = jnp.where(hit, t_raw, 0.0)
-    p_raw = jax.lax.stop_gradient(o + safe_t[:, None] * d)
-    val = g(p_raw[:, 0], p_raw[:, 1], p_raw[:, 2], scene.w, scene.params)
-    iso = scene.isovalues
-    which = jnp.argmin(jnp.abs(val[:, None] - iso[None, :]), axis=-1).astype(jnp.int32)
-    t = attach_t(g, safe_t, o, d, scene.w, scene.params, iso[which], hit)
+    if which is None:
+        p_raw = jax.lax.stop_gradient(o + safe_t[:, None] * d)
+        val = g(p_raw[:, 0], p_raw[:, 1], p_raw[:, 2], scene.w, scene.params)
+        iso = scene.isovalues
+        which = jnp.argmin(jnp.abs(val[:, None] - iso[None, :]), axis=-1).astype(jnp.int32)
+        level = iso[which]
+    else:
+        level = jnp.zeros(t_raw.shape, jnp.float32)
+    t = attach_t(g, safe_t, o, d, scene.w, scene.params, level, hit)
     pts = o + t[:, None] * d
     normal = point_normal(g, pts, scene.w, scene.params, d, stencil=normals)
     return Hits(t=jnp.where(hit, t, jnp.inf), hit=hit,

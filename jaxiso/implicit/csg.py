@@ -1,0 +1,230 @@
+"""Constructive solid geometry with inequalities on inclusion intervals (Sec. 6.6.7.3).
+
+A `Solid` is the region ``g < 0`` of a plain-JAX function; `union`, `intersection`,
+`difference` and `complement` combine solids into a boolean expression, and `CSG`
+ray traces the boundary of the result without ever forming min/max of the fields.
+
+On a piece of a ray with enclosures G_i of every leaf, each leaf is certainly inside
+(hi < 0), certainly outside (lo > 0) or unknown. The surface of leaf i can bound the
+result there only if 0 is in G_i *and* the expression could change when leaf i flips:
+evaluating it in three-valued (Kleene) logic with leaf i forced true and forced false,
+the two outcomes possibly differ. This single rule gives the seed's conditions
+(e.g. sesc: ((sc > 0) and 0 in se) or ((se < 0) and 0 in sc)) for any expression, and
+tells which part was hit (`Hits.surface` = leaf index). A leaf with ``draw=False``
+only trims (icos.csg: the lattice cut by a spherical shell, shell walls left open).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+
+from ..render._scene import Hits
+from ._bisect import BoxTest as _BoxTest
+from ._field import as_field, clip_to_box, enclosure, extended, ray_boxes
+from ._scene import DEFAULT_EPS, _check_concrete, finish_hits, run_bisection
+
+__all__ = ["Solid", "union", "intersection", "difference", "complement", "CSG"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Solid:
+    """The solid ``f(x, y, z[, w][, params]) < 0``; draw=False: trims, never drawn."""
+
+    f: Callable
+    draw: bool = True
+    name: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class _Op:
+    op: str          # "and", "or", "not"
+    args: tuple
+
+
+def _node(x):
+    if isinstance(x, (Solid, _Op)):
+        return x
+    if callable(x):
+        return Solid(x)
+    raise TypeError(f"CSG operands are Solids, CSG expressions or functions, got {x!r}")
+
+
+def union(*solids) -> _Op:
+    if len(solids) < 2:
+        raise ValueError("union needs at least two operands")
+    return _Op("or", tuple(map(_node, solids)))
+
+
+def intersection(*solids) -> _Op:
+    if len(solids) < 2:
+        raise ValueError("intersection needs at least two operands")
+    return _Op("and", tuple(map(_node, solids)))
+
+
+def complement(solid) -> _Op:
+    return _Op("not", (_node(solid),))
+
+
+def difference(a, b) -> _Op:
+    """a minus b."""
+    return intersection(a, complement(b))
+
+
+def _leaves(expr, out):
+    if isinstance(expr, Solid):
+        if expr not in out:
+            out.append(expr)
+        return out
+    for a in expr.args:
+        _leaves(a, out)
+    return out
+
+
+def _eval3(expr, leaves, states):
+    """Kleene evaluation: states[i] = (possibly_true, possibly_false) per leaf."""
+    if isinstance(expr, Solid):
+        return states[leaves.index(expr)]
+    vals = [_eval3(a, leaves, states) for a in expr.args]
+    if expr.op == "not":
+        pt, pf = vals[0]
+        return pf, pt
+    pt, pf = vals[0]
+    for qt, qf in vals[1:]:
+        if expr.op == "and":
+            pt, pf = pt & qt, pf | qf
+        else:
+            pt, pf = pt | qt, pf & qf
+    return pt, pf
+
+
+@dataclasses.dataclass(frozen=True)
+class CSG:
+    """Scene: the boundary of a CSG expression of solids inside the box [lo, hi].
+
+    Attributes mirror `ImplicitSurface` (params, w, eps, arithmetic are shared by all
+    leaves); `Hits.surface` is the index of the leaf hit, in `leaves` order.
+    """
+
+    expr: object
+    lo: jax.Array
+    hi: jax.Array
+    params: object = ()
+    w: jax.Array = 0.0
+    eps: jax.Array = DEFAULT_EPS
+    arithmetic: str = "interval"
+    method: str = "t-bisection"
+
+    def __post_init__(self):
+        object.__setattr__(self, "expr", _node(self.expr))
+        lo = jnp.asarray(self.lo, jnp.float32)
+        hi = jnp.asarray(self.hi, jnp.float32)
+        if lo.shape != (3,) or hi.shape != (3,):
+            raise ValueError("lo and hi must be 3-vectors")
+        _check_concrete(lo, hi, self.eps)
+        if not any(s.draw for s in self.leaves):
+            raise ValueError("a CSG scene needs at least one Solid with draw=True")
+        object.__setattr__(self, "lo", lo)
+        object.__setattr__(self, "hi", hi)
+        object.__setattr__(self, "w", jnp.asarray(self.w, jnp.float32))
+        object.__setattr__(self, "eps", jnp.asarray(self.eps, jnp.float32))
+        for s in self.leaves:
+            as_field(s.f, self.has_params)
+
+    @property
+    def leaves(self) -> list:
+        return _leaves(self.expr, [])
+
+    @property
+    def has_params(self) -> bool:
+        return len(jax.tree_util.tree_leaves(self.params)) > 0
+
+    def replace(self, **changes) -> CSG:
+        return dataclasses.replace(self, **changes)
+
+    @property
+    def field(self):
+        """Pointwise: the drawn leaf nearest to its zero set (at a hit, the part hit)."""
+        fields = [as_field(s.f, self.has_params) for s in self.leaves]
+        drawn = jnp.array([s.draw for s in self.leaves])
+
+        def g(x, y, z, w, params):
+            vals = jnp.stack([fi(x, y, z, w, params) for fi in fields], axis=-1)
+            score = jnp.where(drawn, jnp.abs(vals), jnp.inf)
+            i = jnp.argmin(score, axis=-1)
+            return jnp.take_along_axis(vals, i[..., None], axis=-1)[..., 0]
+        return g
+
+    def intersect_packet(self, rays, t_min, t_max, *, method=None, arithmetic=None,
+                         eps=None, rounding="fast", normals=None, max_steps=None,
+                         lanes=None, delta=None) -> Hits:
+        method = self.method if method is None else method
+        if method not in ("t-bisection", "k-bisection"):
+            raise ValueError(f"CSG scenes support 't-bisection' and 'k-bisection', got "
+                             f"{method!r}")
+        arithmetic = self.arithmetic if arithmetic is None else arithmetic
+        eps = self.eps if eps is None else jnp.asarray(eps, jnp.float32)
+        scene = jax.lax.stop_gradient(self)
+        leaves = self.leaves
+        fields = [as_field(s.f, self.has_params) for s in leaves]
+        Fs = [extended(fi, arithmetic, rounding) for fi in fields]
+        o = jax.lax.stop_gradient(rays.origin)
+        d = jax.lax.stop_gradient(rays.direction)
+        t0, t1, inside = clip_to_box(o, d, scene.lo, scene.hi, t_min, t_max)
+        t0 = jnp.where(inside, t0, 0.0)
+        t1 = jnp.where(inside, t1, 0.0)
+        p = o + t0[:, None] * d
+        D = d * (t1 - t0)[:, None]
+
+        def test(p, D, s0, s1):
+            boxes = ray_boxes(p, D, s0, s1, arithmetic)
+            rs = [enclosure(F, boxes, scene.w, scene.params, arithmetic) for F in Fs]
+            states = [(r.lo < 0, r.hi > 0) for r in rs]  # possibly inside, outside
+            possible = jnp.zeros(jnp.shape(s0), bool)
+            finite = jnp.ones(jnp.shape(s0), bool)
+            for i, (leaf, r) in enumerate(zip(leaves, rs)):
+                if not leaf.draw:
+                    continue
+                on = (r.lo <= 0) & (r.hi >= 0)
+                true = list(states)
+                false = list(states)
+                true[i] = (jnp.ones_like(on), jnp.zeros_like(on))
+                false[i] = (jnp.zeros_like(on), jnp.ones_like(on))
+                at, af = _eval3(self.expr, leaves, true)
+                bt, bf = _eval3(self.expr, leaves, false)
+                cand = on & ((at & bf) | (af & bt))
+                possible = possible | cand
+                finite = finite & (~cand | jnp.isfinite(r.hi - r.lo))
+            return _BoxTest(possible, finite, jnp.zeros_like(possible))
+
+        res = run_bisection(method, test, p, D, inside, eps, max_steps, lanes)
+        t_raw = jnp.where(res.hit, t0 + res.s * (t1 - t0), jnp.inf)
+        # which part: the drawn leaf nearest its zero set at the hit point
+        pts = jax.lax.stop_gradient(o + jnp.where(res.hit, t_raw, 0.0)[:, None] * d)
+        vals = jnp.stack([fi(pts[:, 0], pts[:, 1], pts[:, 2], scene.w, scene.params)
+                          for fi in fields], axis=-1)
+        drawn = jnp.array([s.draw for s in leaves])
+        which = jnp.argmin(jnp.where(drawn, jnp.abs(vals), jnp.inf), axis=-1)
+        return finish_hits(self.field, self, rays, t_raw, res.hit, res.steps, normals,
+                           which=which.astype(jnp.int32))
+
+
+
+
+def _flatten(s: CSG):
+    return ((s.lo, s.hi, s.params, s.w, s.eps), (s.expr, s.arithmetic, s.method))
+
+
+def _unflatten(aux, children):
+    s = object.__new__(CSG)
+    for name, v in zip(("lo", "hi", "params", "w", "eps"), children):
+        object.__setattr__(s, name, v)
+    for name, v in zip(("expr", "arithmetic", "method"), aux):
+        object.__setattr__(s, name, v)
+    return s
+
+
+jax.tree_util.register_pytree_node(CSG, _flatten, _unflatten)
