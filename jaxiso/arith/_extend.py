@@ -98,8 +98,10 @@ def _div_interval(a, b):
 
 
 # IEEE-correctly rounded basic operations: half an ulp, padded to 1.
-for _name, _ia, _aa in (("add", ia.add, aa.add), ("sub", ia.sub, aa.sub),
-                        ("mul", ia.mul, aa.mul), ("div", _div_interval, aa.div),
+# add_any sums tangents in derivative jaxprs (Mitchell's gradient test)
+for _name, _ia, _aa in (("add", ia.add, aa.add), ("add_any", ia.add, aa.add),
+                        ("sub", ia.sub, aa.sub), ("mul", ia.mul, aa.mul),
+                        ("div", _div_interval, aa.div),
                         ("sqrt", ia.sqrt, aa.sqrt), ("square", ia.square, aa.square)):
     _both(_name, _ia, _aa, ulps=2.0)
 

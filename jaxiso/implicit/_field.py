@@ -49,17 +49,27 @@ def as_field(f, has_params: bool):
 
 def ray_boxes(p, D, s0, s1, arithmetic: str):
     """Boxes enclosing the piece ``p + D s``, s in [s0, s1]: a list of 3 Intervals or
-    3 single-symbol Affine forms (p, D: [..., 3]; s0, s1: [...])."""
+    3 single-symbol Affine forms (p, D: [..., 3]; s0, s1: [...]).
+
+    Boxes are padded by `_OVERLAP` ulps of their coordinates: neighbouring pieces then
+    overlap, so a root on a shared endpoint is not lost to a rounding difference between
+    the lower- and upper-bound paths (XLA contracts a*b+c into FMAs differently there)."""
     if arithmetic == "interval":
         a = p + D * s0[..., None]
         b = p + D * s1[..., None]
         lo, hi = jnp.minimum(a, b), jnp.maximum(a, b)
+        pad = _OVERLAP * jnp.maximum(jnp.abs(lo), jnp.abs(hi))
+        lo, hi = lo - pad, hi + pad
         return [Interval(lo[..., i], hi[..., i]) for i in range(3)]
     sm = 0.5 * (s0 + s1)
     sr = 0.5 * (s1 - s0)
     c = p + D * sm[..., None]
-    zero = jnp.zeros_like(sm)
-    return [Affine(c[..., i], (D[..., i] * sr)[..., None], zero) for i in range(3)]
+    dev = D * sr[..., None]
+    pad = _OVERLAP * (jnp.abs(c) + jnp.abs(dev))
+    return [Affine(c[..., i], dev[..., i:i + 1], pad[..., i]) for i in range(3)]
+
+
+_OVERLAP = 4.0 * 2.0**-24  # 4 ulps (relative)
 
 
 def enclosure(F, boxes, w, params, arithmetic: str) -> Interval:
