@@ -108,6 +108,20 @@ def clip_to_box(rays_o, rays_d, lo, hi, t_min, t_max):
     return t0, t1, inside
 
 
+def ray_segments(rays, lo, hi, t_min, t_max):
+    """The part of each ray inside the box, as ``p + D s`` for s in [0, 1].
+
+    Returns (t0, t1, inside, p, D): entry/exit parameters (0 where the ray misses),
+    inside [P] bool, p [P, 3] the entry point, D [P, 3] the segment vector. Gradients are
+    stopped: hits get theirs from the implicit function theorem."""
+    o = jax.lax.stop_gradient(rays.origin)
+    d = jax.lax.stop_gradient(rays.direction)
+    t0, t1, inside = clip_to_box(o, d, lo, hi, t_min, t_max)
+    t0 = jnp.where(inside, t0, 0.0)
+    t1 = jnp.where(inside, t1, 0.0)
+    return t0, t1, inside, o + t0[:, None] * d, d * (t1 - t0)[:, None]
+
+
 def point_normal(g, p, w, params, direction, stencil=None):
     """Unit normal from the gradient of g at points p [..., 3] (jax.grad by default,
     central differences of width `stencil` otherwise, Sec. 6.4.7). Where the gradient
@@ -130,4 +144,4 @@ def point_normal(g, p, w, params, direction, stencil=None):
 
 
 __all__ = ["METHODS", "as_field", "ray_boxes", "enclosure", "contains_any", "extended",
-           "clip_to_box", "point_normal", "ia"]
+           "clip_to_box", "ray_segments", "point_normal", "ia"]

@@ -20,12 +20,12 @@ from ..render._scene import Hits
 from . import _bisect
 from ._field import (
     as_field,
-    clip_to_box,
     contains_any,
     enclosure,
     extended,
     point_normal,
     ray_boxes,
+    ray_segments,
 )
 
 __all__ = ["ImplicitSurface", "attach_t"]
@@ -105,13 +105,7 @@ class ImplicitSurface:
         arithmetic = self.arithmetic if arithmetic is None else arithmetic
         eps = self.eps if eps is None else jnp.asarray(eps, jnp.float32)
         scene = jax.lax.stop_gradient(self)
-        o = jax.lax.stop_gradient(rays.origin)
-        d = jax.lax.stop_gradient(rays.direction)
-        t0, t1, inside = clip_to_box(o, d, scene.lo, scene.hi, t_min, t_max)
-        t0 = jnp.where(inside, t0, 0.0)
-        t1 = jnp.where(inside, t1, 0.0)
-        p = o + t0[:, None] * d
-        D = d * (t1 - t0)[:, None]
+        t0, t1, inside, p, D = ray_segments(rays, scene.lo, scene.hi, t_min, t_max)
         g = scene.field
         if method in ("t-bisection", "k-bisection"):
             F = extended(g, arithmetic, rounding)

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 
 from ..render._scene import Hits
 from ._bisect import BoxTest as _BoxTest
-from ._field import as_field, clip_to_box, enclosure, extended, ray_boxes
+from ._field import as_field, enclosure, extended, ray_boxes, ray_segments
 from ._scene import DEFAULT_EPS, _check_concrete, finish_hits, run_bisection
 
 __all__ = ["Solid", "union", "intersection", "difference", "complement", "CSG"]
@@ -171,13 +171,9 @@ class CSG:
         leaves = self.leaves
         fields = [as_field(s.f, self.has_params) for s in leaves]
         Fs = [extended(fi, arithmetic, rounding) for fi in fields]
+        t0, t1, inside, p, D = ray_segments(rays, scene.lo, scene.hi, t_min, t_max)
         o = jax.lax.stop_gradient(rays.origin)
         d = jax.lax.stop_gradient(rays.direction)
-        t0, t1, inside = clip_to_box(o, d, scene.lo, scene.hi, t_min, t_max)
-        t0 = jnp.where(inside, t0, 0.0)
-        t1 = jnp.where(inside, t1, 0.0)
-        p = o + t0[:, None] * d
-        D = d * (t1 - t0)[:, None]
 
         def test(p, D, s0, s1):
             boxes = ray_boxes(p, D, s0, s1, arithmetic)
