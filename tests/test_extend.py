@@ -301,3 +301,26 @@ def test_review_regressions_cancelling_sums_ints_casts_switch_inf_power():
     for p in (jnp.inf, jnp.nan):
         for arithmetic in ARITH:
             ji.extend(lambda x: x**p, arithmetic)(ji.interval(0.5, 2.0))
+
+
+def test_atan2_encloses_sampled_angles_and_handles_the_branch_cut():
+    rng = np.random.default_rng(7)
+    F = ji.extend(lambda x, y: jnp.arctan2(y, x))
+    G = ji.extend(lambda x, y: jnp.arctan2(y, x), "affine")
+    c = rng.uniform(-2, 2, (400, 2))
+    h = 10 ** rng.uniform(-3, 0.3, (400, 2))
+    X = ji.interval(c[:, 0] - h[:, 0], c[:, 0] + h[:, 0])
+    Y = ji.interval(c[:, 1] - h[:, 1], c[:, 1] + h[:, 1])
+    for r in (F(X, Y), ji.aa.to_interval(G(X, Y))):
+        u = rng.uniform(size=(400, 300))
+        xs = (c[:, :1] - h[:, :1]) + 2 * h[:, :1] * u
+        ys = (c[:, 1:] - h[:, 1:]) + 2 * h[:, 1:] * rng.uniform(size=(400, 300))
+        v = np.arctan2(ys, xs)
+        assert np.all(v.min(1) >= np.asarray(r.lo) - 1e-6)
+        assert np.all(v.max(1) <= np.asarray(r.hi) + 1e-6)
+    # a box across the negative x axis spans the cut: [-pi, pi]; away from it, tight
+    cut = F(ji.interval(-2.0, -1.0), ji.interval(-0.1, 0.1))
+    np.testing.assert_allclose([float(cut.lo), float(cut.hi)], [-np.pi, np.pi], rtol=1e-6)
+    q = F(ji.interval(1.0, 2.0), ji.interval(1.0, 2.0))
+    np.testing.assert_allclose([float(q.lo), float(q.hi)],
+                               [np.arctan2(1, 2), np.arctan2(2, 1)], rtol=1e-6)

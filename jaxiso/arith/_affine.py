@@ -500,6 +500,7 @@ def _via_interval(fn):
 
 
 sin = _via_interval(ia.sin)
+atan2 = _via_interval(ia.atan2)
 cos = _via_interval(ia.cos)
 tan = _via_interval(ia.tan)
 floor = _via_interval(ia.floor)

@@ -38,7 +38,7 @@ __all__ = [
     "Interval", "interval", "point", "entire", "empty", "as_interval",
     "width", "mid", "rad", "mig", "mag", "contains", "is_empty", "hull", "intersect",
     "add", "sub", "mul", "div", "neg", "abs", "square", "ipow", "pow", "sqrt", "cbrt",
-    "exp", "log", "sin", "cos", "tan", "tanh", "atan", "sinh", "cosh",
+    "exp", "log", "sin", "cos", "tan", "tanh", "atan", "atan2", "sinh", "cosh",
     "minimum", "maximum", "clamp", "floor", "ceil", "sign", "fmod",
     "lt", "le", "gt", "ge", "eq", "ne", "logical_and", "logical_or", "logical_not",
     "where", "select_n", "widen",
@@ -460,6 +460,20 @@ for _f, _n in ((sqrt, "sqrt"), (log, "log"), (cbrt, "cbrt"), (exp, "exp"), (tanh
                (ceil, "ceil"), (sign, "sign")):
     _f.__name__ = _n
     _f.__doc__ = f"Interval {_n} (monotone/even rule; domain parts dropped and flagged)."
+
+def atan2(y, x) -> Interval:
+    """Interval atan2(y, x), the angle of (x, y) in [-pi, pi]. On a box that holds neither
+    the origin nor a piece of the branch cut (x < 0, y = 0) the angle is continuous and
+    its extremes lie at corners; otherwise the result is [-pi, pi]."""
+    y, x = as_interval(y), as_interval(x)
+    corners = jnp.stack([jnp.arctan2(yy, xx) for yy in (y.lo, y.hi) for xx in (x.lo, x.hi)])
+    cut = (x.lo < 0) & (y.lo <= 0) & (y.hi >= 0)
+    pi = jnp.float32(_PI)
+    lo = jnp.where(cut, -pi, jnp.min(corners, axis=0))
+    hi = jnp.where(cut, pi, jnp.max(corners, axis=0))
+    lo, hi = _same_nan(lo, hi, y.lo, x.lo)
+    return _make(lo, hi, y, x)
+
 
 # Beyond this magnitude the f32 position of an extremum (error ~|x| 1.5e-7) can miss
 # it by more than an ulp of 1 ((|x| 1.5e-7)^2 / 2); answer [-1, 1] there.

@@ -221,7 +221,7 @@ def mitchell(g, scene, p, D, inside, eps, arithmetic="interval", rounding="fast"
 
     def one(p, D, d_max, length, active):
         def piece(k, d):
-            w = jnp.exp2(-d.astype(jnp.float32))
+            w = _bisect.piece_width(d)
             return k.astype(jnp.float32) * w, (k + 1).astype(jnp.float32) * w
 
         def cond(st):

@@ -52,6 +52,12 @@ def depth_for(length, eps):
     return jnp.clip(d, 0, MAX_DEPTH).astype(jnp.int32)
 
 
+def piece_width(d):
+    """2^-d as an exact float32 (built from the exponent bits: XLA's exp2 is not exact
+    on CPU, and pieces whose widths are off by an ulp leave gaps between them)."""
+    return lax.bitcast_convert_type((127 - d.astype(jnp.int32)) << 23, jnp.float32)
+
+
 def _trailing_zeros(k):
     """Number of trailing zero bits of a positive int32."""
     return lax.population_count((k & -k) - 1)
@@ -73,7 +79,7 @@ def t_bisect(test, d_max, active, max_steps: int) -> Result:
 
     def body(state):
         k, d, done, hit, steps = state
-        w = jnp.exp2(-d.astype(jnp.float32))
+        w = piece_width(d)
         s0 = k.astype(jnp.float32) * w
         s1 = (k + 1).astype(jnp.float32) * w
         r = test(s0, s1)
@@ -91,7 +97,7 @@ def t_bisect(test, d_max, active, max_steps: int) -> Result:
     init = (jnp.int32(0), jnp.int32(0), ~active, jnp.bool_(False), jnp.int32(0))
     k, d, done, hit, steps = lax.while_loop(cond, body, init)
     hit = hit & done
-    w = jnp.exp2(-d.astype(jnp.float32))
+    w = piece_width(d)
     s = jnp.where(hit, (k.astype(jnp.float32) + 0.5) * w, jnp.inf)
     return Result(s, hit, steps)
 
@@ -129,7 +135,7 @@ def k_bisect(test, k_enter, k_exit, d_max, active, max_steps: int) -> Result:
     d_stop = jnp.clip(jnp.max(d_need), 0, MAX_DEPTH).astype(jnp.int32)
 
     def pieces(k, d):
-        w = jnp.exp2(-d.astype(jnp.float32))
+        w = piece_width(d)
         a = K0 + span * (k.astype(jnp.float32) * w)
         b = K0 + span * ((k + 1).astype(jnp.float32) * w)
         s_a = (a - k_enter) / safe_dk
@@ -223,7 +229,7 @@ def _lanes_phase(test, p, D, d_max, queue, n_queue, out, width: int, stop_live: 
     def step(_, ln):
         k, d = ln["k"], ln["d"]
         busy = ln["live"] & ~ln["done"]
-        w = jnp.exp2(-d.astype(jnp.float32))
+        w = piece_width(d)
         r = test(ln["p"], ln["D"], k.astype(jnp.float32) * w, (k + 1).astype(jnp.float32) * w)
         accept = r.possible & r.finite & ((d >= ln["dmax"]) | r.small)
         descend = r.possible & ~accept & (d < ln["dmax"])
@@ -249,7 +255,7 @@ def _lanes_phase(test, p, D, d_max, queue, n_queue, out, width: int, stop_live: 
         finished = ln["live"] & ln["done"]
         # finished rays write their result (the others scatter out of bounds: dropped)
         target = jnp.where(finished, ln["idx"], n)
-        w = jnp.exp2(-ln["d"].astype(jnp.float32))
+        w = piece_width(ln["d"])
         s_hit = jnp.where(ln["hit"], (ln["k"].astype(jnp.float32) + 0.5) * w, jnp.inf)
         s_out = s_out.at[target].set(s_hit, mode="drop")
         hit_out = hit_out.at[target].set(ln["hit"], mode="drop")

@@ -24,7 +24,9 @@ def as_field(f, has_params: bool):
     try:
         sig = inspect.signature(f)
         kinds = (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
-        n = sum(p.kind in kinds for p in sig.parameters.values())
+        # parameters with defaults (e.g. closures' i=i) are not coordinates
+        n = sum(p.kind in kinds and p.default is inspect.Parameter.empty
+                for p in sig.parameters.values())
         var = any(p.kind == inspect.Parameter.VAR_POSITIONAL for p in sig.parameters.values())
     except (TypeError, ValueError):
         n, var = 4, False

@@ -197,7 +197,9 @@ def shade_rays(scene, rays: Rays, shading: Shading, light: Light, packet: int,
             shadow_opts = dict(options)
             shadow_opts["eps"] = eps * shading.shadow_eps_scale
             cast = hits.hit & (ndotl > 0)
-            srays = Rays(p + n * offset, ldir)
+            # start outside the shadow ray's own (coarser) first piece: an interval box
+            # of that piece must not reach back to the surface (shadow acne)
+            srays = Rays(p + n * (offset * shading.shadow_eps_scale), ldir)
             shits = intersect(scene, srays, t_min=0.0,
                               t_max=jnp.where(cast, dist, -1.0), packet=packet,
                               **shadow_opts)
