@@ -138,7 +138,8 @@ for _name, _ia, _aa in (("exp", ia.exp, aa.exp), ("log", ia.log, aa.log),
                         ("cbrt", ia.cbrt, aa.cbrt), ("sin", ia.sin, aa.sin),
                         ("cos", ia.cos, aa.cos), ("tan", ia.tan, aa.tan),
                         ("tanh", ia.tanh, aa.tanh), ("atan", ia.atan, aa.atan),
-                        ("atan2", ia.atan2, aa.atan2), ("sinh", ia.sinh, aa.sinh), ("cosh", ia.cosh, aa.cosh)):
+                        ("atan2", ia.atan2, aa.atan2), ("sinh", ia.sinh, aa.sinh),
+                        ("cosh", ia.cosh, aa.cosh)):
     _both(_name, _ia, _aa, ulps=_TRANSCENDENTAL_ULPS)
 
 for _name, _fn, _lo, _hi, _inc in (
