@@ -295,3 +295,31 @@ def test_image_png_roundtrip(tmp_path):
     back = np.asarray(PILImage.open(path))
     assert back.shape == (SIZE, SIZE, 3)
     np.testing.assert_allclose(back / 255.0, np.clip(img, 0, 1), atol=1 / 255)
+
+
+def test_central_difference_normals_and_zero_gradients():
+    rays = CAM.rays()
+    grad = ji.intersect(_scene(), rays)
+    central = ji.intersect(_scene(), rays, normals=1e-2)
+    m = np.asarray(grad.hit)
+    np.testing.assert_allclose(np.asarray(central.normal)[m], np.asarray(grad.normal)[m],
+                               atol=1e-3)
+    # a double root: f = (|p|^2 - 1)^2 touches 0 with a zero gradient; interval bisection
+    # still finds it (sign-change methods cannot) and the normal faces the ray, not NaN
+    double = ji.ImplicitSurface(lambda x, y, z: (x * x + y * y + z * z - 1.0) ** 2,
+                                (-1.5,) * 3, (1.5,) * 3)
+    hits = ji.intersect(double, rays)
+    hm = np.asarray(hits.hit)
+    assert hm.sum() >= 0.9 * m.sum()
+    d = np.asarray(rays.direction)[hm]
+    n = np.asarray(hits.normal)[hm]
+    assert np.all(np.isfinite(n))
+    np.testing.assert_allclose(np.linalg.norm(n, axis=-1), 1.0, rtol=1e-5)
+    img = ji.render(double, CAM)
+    assert np.all(np.isfinite(img))
+    # near the double root the gradient is tiny but radial (either sign); where it
+    # vanishes exactly the normal is -direction
+    p = np.asarray(rays.at(jnp.where(hits.hit, hits.t, 0.0)))[hm]
+    radial = np.abs(np.sum(n * p / np.linalg.norm(p, axis=-1, keepdims=True), -1)) > 0.99
+    facing = np.all(np.abs(n + d) < 1e-5, axis=-1)
+    assert np.all(radial | facing)
