@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import jaxiso as ji
 from jaxiso import aa, ia
 from jaxiso.arith import Affine
 
@@ -117,3 +118,13 @@ def test_empty_propagates_in_affine():
     big = form(3e38, [3e38])
     s = aa.to_interval(aa.add(big, big))
     assert float(s.hi) == np.inf
+
+
+def test_overflowed_point_stays_a_point_not_the_whole_line():
+    # x^500 overflows float32 to [inf, inf] beyond |x| ~ 1.19: in affine form that must
+    # stay +inf (a box that cannot hold a root), not centre 0 with infinite error
+    iv = aa.to_interval(aa.from_interval(ji.interval(jnp.inf, jnp.inf), 0, 1))
+    assert float(iv.lo) == np.inf and float(iv.hi) == np.inf
+    F = ji.extend(lambda x, y, z: x**500 + 0.5 * jnp.abs(y) ** 35 + 0.5 * z**4 - 1.0, "affine")
+    r = aa.to_interval(F(ji.interval(1.3, 1.4), ji.interval(-0.1, 0.1), ji.interval(0.0, 0.2)))
+    assert not bool(ia.contains(r, 0.0))

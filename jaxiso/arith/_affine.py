@@ -120,7 +120,8 @@ def _range(x: Affine) -> Interval:
     finfo = jnp.finfo(jnp.result_type(x.center))
     pad = float(finfo.eps) * jnp.abs(x.center) + float(finfo.eps) * radius(x) + float(
         finfo.tiny)  # two terms: their sum could overflow near the float32 maximum
-    pad = jnp.where(jnp.isnan(x.center), 0.0, pad)  # overflowed: iv is already entire
+    # overflowed (NaN: iv is already entire) or an infinite point (exact): no pad
+    pad = jnp.where(jnp.isnan(x.center) | jnp.isinf(x.center), 0.0, pad)
     return Interval(iv.lo - pad, iv.hi + pad, iv.defined)
 
 
@@ -130,6 +131,11 @@ def from_interval(x, symbol: int | None = None, n: int = 1) -> Affine:
     x = ia.as_interval(x)
     c = ia.mid(x)
     r = ia.rad(x)
+    # an overflowed point [inf, inf] stays that point (not the whole line): a box where
+    # x^500 overflows is rejected as in interval arithmetic
+    inf_point = (x.lo == x.hi) & jnp.isinf(x.lo)
+    c = jnp.where(inf_point, x.lo, c)
+    r = jnp.where(inf_point, 0.0, r)
     finite = jnp.isfinite(r)
     if symbol is None:
         dev = jnp.zeros(np.shape(c) + (n,), c.dtype)

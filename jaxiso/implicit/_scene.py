@@ -137,8 +137,9 @@ def run_bisection(method, test, p, D, inside, eps, max_steps=None, lanes=None):
     length = jnp.linalg.norm(D, axis=-1)
     d_max = _bisect.depth_for(length, eps)
     if max_steps is None:
-        # a K-bisection packet visits the union of its rays' candidate pieces
-        max_steps = 64 * _bisect.MAX_DEPTH * (8 if method == "k-bisection" else 1)
+        # enough for eps 2^-22 with IA on the Barth decic (1920 was not); a K-bisection
+        # packet visits the union of its rays' candidate pieces
+        max_steps = 256 * _bisect.MAX_DEPTH * (8 if method == "k-bisection" else 1)
     if method == "t-bisection" and lanes is not None:
         return _bisect.t_bisect_lanes(test, p, D, d_max, inside, lanes, max_steps)
     if method == "t-bisection":

@@ -1,0 +1,727 @@
+"""Ray tracing throughput, work and accuracy of the implicit-surface methods: analogs of
+the seed's Tables 6.1 and 6.2, a packet-size table (seed Table 4.2) and an eps sweep.
+
+    python benchmarks/bench_implicit.py [--size 512] [--quick] [--repeats 3]
+        [--only table61,table62,packets,sweep] [--names sphere,...] [--out benchmarks/results]
+
+Every entry runs ``jax.jit(ji.intersect)`` (the render path: rays in tile order, packets
+of tile x tile rays, hits with normals) on a catalogue camera. Compile time (AOT
+``lower().compile()``) is reported apart from run time: one warm-up call, then the
+median of `repeats` calls, each ``jax.block_until_ready``. Mrays/s = pixels / run s.
+Work counters come from ``hits.steps`` (loop iterations per ray): mean / max, the hit
+fraction, the rays that exhausted ``max_steps``, the lane utilisation of a packet (the
+useful share of lane-iterations: sum of steps / sum over packets of packet x its
+slowest ray's steps) and the cost per ray-step (run s / total steps).
+
+Sections:
+  table61  every catalogue surface, eps 2^-11, interval and affine t-bisection at
+           size x size; "converged eps" (the largest eps in 2^-6..2^-14 whose hit mask
+           agrees with the float64 reference tracer, tests/reference_trace64.py, eps
+           2^-22, on >= 99.5% of pixels) at a smaller size. CSG entries have no reference
+           (the reference tracer handles plain level sets only): no converged eps.
+  table62  t-bisection vs K-bisection vs Mitchell at eps 2^-11 and 2^-22 on the Mitchell
+           and Barth decic surfaces, interval arithmetic.
+  packets  Barth sextic, interval t-bisection, eps 2^-11: one vmap over all rays, square
+           tiles, and persistent lanes with refill.
+  sweep    eps 2^-6..2^-16 on barth_sextic and mitchell for t-/K-bisection x interval /
+           affine and Mitchell; point sampling with 16/64/256 samples. Pixel error
+           (fraction of hit masks differing from the reference) and depth error
+           (median / 99th percentile of |t - t_ref| where both hit) against Mrays/s.
+The target (>= 1 Mray/s on the Barth sextic at eps 2^-11, best configuration measured)
+is checked at the end. Writes ``<out>/implicit_<backend>.json`` and, when matplotlib is
+installed, ``<out>/implicit_<backend>_{sweep,packets,table61}.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import pathlib
+import platform
+import statistics
+import sys
+import time
+import traceback
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxiso as ji
+from jaxiso.render._scene import DEFAULT_TILE
+
+ROOT = pathlib.Path(__file__).resolve().parent
+sys.path.insert(0, str(ROOT.parent / "tests"))
+import reference64  # noqa: E402
+import reference_trace64  # noqa: E402
+
+SECTIONS = ("table61", "table62", "packets", "sweep")
+ARITHMETICS = ("interval", "affine")
+EPS_DEFAULT = 2.0**-11
+CONVERGED_EPS = tuple(2.0**-k for k in range(6, 15))  # 2^-6 .. 2^-14, coarse to fine
+SWEEP_EPS = tuple(2.0**-k for k in range(6, 17))  # 2^-6 .. 2^-16
+SAMPLES = (16, 64, 256)
+AGREE = 0.995
+REF_EPS = 2.0**-22
+TARGET_MRAYS = 1.0
+RENDER_TILE = DEFAULT_TILE  # the render path's packet edge
+# bisection's default loop bound (jaxiso.implicit._scene.run_bisection)
+MAX_DEPTH = 30
+MAX_STEPS = {"t-bisection": 64 * MAX_DEPTH, "k-bisection": 8 * 64 * MAX_DEPTH}
+
+# Seed Table 6.1 (frames/s at 1024^2; CPU: 4-core Xeon SSE, IA; GPU: 8800 GTX) and the
+# converged eps column, for side-by-side reading (1 fps = 1.048576 Mrays/s).
+SEED_TABLE61 = {
+    "sphere": (15, 75, 147, "RAA", -10), "steiner": (7.5, 34, 40, "RAA", -12),
+    "mitchell": (5.2, 16, 58, "RAA", -10), "teardrop": (5.5, 102, 115, "RAA", -10),
+    "bretzel4": (13, 78, 48, "IA", -10), "klein": (11, 30, 110, "RAA", -12),
+    "tangle": (3.2, 15, 68, "RAA", -10), "decocube": (5.5, 28, 27, "IA", -11),
+    "barth_sextic": (7.4, 31, 76, "RAA", -10), "barth_decic": (0.92, 4.9, 15.6, "RAA", -11),
+    "superquadric": (18, 119, 8.3, "IA", -12), "icos.csg": (1.8, 13.3, None, "IA", -11),
+    "sesc.csg": (1.6, 8.9, None, "IA", -13), "sin.blob": (0.71, 6.0, None, "IA", -12),
+    "cloth": (2.2, 38, None, "IA", -9), "water": (2.2, 37, None, "IA", -9),
+}
+# Seed Table 6.2, CPU SSE (frames/s at 1024^2): (mitchell 2^-11, 2^-22, decic 2^-11, 2^-22)
+SEED_TABLE62 = {"t-bisection": (5.0, 1.0, 0.90, 0.061), "k-bisection": (5.1, 1.2, 0.92, 0.18),
+                "mitchell": (0.54, 0.22, 0.19, 0.036)}
+
+
+def log2_label(eps):
+    return f"2^{round(math.log2(eps))}"
+
+
+# ---------------------------------------------------------------------------- runner
+
+
+class Bench:
+    """Compiles and times ``jit(intersect)`` configurations; caches executables and the
+    float64 references."""
+
+    def __init__(self, repeats: int, slow_s: float):
+        self.repeats = repeats
+        self.slow_s = slow_s
+        self._compiled = {}
+        self._refs = {}
+        self._rays = {}
+
+    def rays(self, name, size, tile):
+        """Camera rays of a catalogue entry in tile order (tile x tile packets)."""
+        key = (name, size, tile)
+        if key not in self._rays:
+            r = ji.surfaces.camera(name, size).rays()
+            self._rays[key] = ji.Rays(ji.to_tiles(r.origin, tile),
+                                      ji.to_tiles(r.direction, tile))
+        return self._rays[key]
+
+    def compiled(self, name, size, tile, method, arithmetic, packet, lanes, extra):
+        key = (name, size, tile, method, arithmetic, packet, lanes,
+               tuple(sorted(extra.items())))
+        if key in self._compiled:
+            return self._compiled[key], True
+        opts = dict(method=method, arithmetic=arithmetic, packet=packet, **extra)
+        if lanes is not None:
+            opts["lanes"] = lanes
+
+        def fn(scene, rays, eps):
+            return ji.intersect(scene, rays, eps=eps, **opts)
+
+        scene = ji.surfaces.scene(name)
+        t0 = time.perf_counter()
+        exe = jax.jit(fn).lower(scene, self.rays(name, size, tile),
+                                jnp.float32(EPS_DEFAULT)).compile()
+        entry = (exe, time.perf_counter() - t0)
+        self._compiled[key] = entry
+        return entry, False
+
+    def run(self, name, size, eps, *, method="t-bisection", arithmetic="interval",
+            tile=RENDER_TILE, packet=None, lanes=None, timed=True, exec_size=None,
+            **extra):
+        """One configuration: returns (row dict, image-ordered hit mask, image-ordered t).
+
+        An entry whose warm-up call takes longer than `slow_s` is timed by that call
+        alone (repeats_used 0). exec_size: run on the executable compiled for
+        exec_size^2 rays (>= size^2): the size^2 camera rays followed by rays that miss
+        the domain, so no new compile (for masks; the timing includes empty packets)."""
+        packet = tile * tile if packet is None else int(packet)
+        ex = size if exec_size is None else exec_size
+        (exe, compile_s), cached = self.compiled(name, ex, tile, method, arithmetic,
+                                                 packet, lanes, extra)
+        scene = ji.surfaces.scene(name)
+        rays = self.rays(name, size, tile)
+        m = rays.origin.shape[0]
+        if ex != size:
+            rays = pad_rays(rays, self.rays(name, ex, tile).origin.shape[0], scene)
+        e = jnp.float32(eps)
+        t0 = time.perf_counter()
+        hits = jax.block_until_ready(exe(scene, rays, e))  # warm-up
+        warm_s = time.perf_counter() - t0
+        times = []
+        for _ in range(self.repeats if timed and warm_s <= self.slow_s else 0):
+            t0 = time.perf_counter()
+            hits = jax.block_until_ready(exe(scene, rays, e))
+            times.append(time.perf_counter() - t0)
+        run_s = (statistics.median(times) if times else warm_s) if timed else None
+        hits = jax.tree_util.tree_map(lambda a: a[:m], hits)
+        n = size * size
+        steps = np.asarray(hits.steps, np.int64)  # tile order, padded to whole tiles
+        hit = np.asarray(hits.hit)
+        # lane utilisation of vmapped t-bisection packets
+        util = None
+        if method == "t-bisection" and lanes is None:
+            n_pk = -(-m // packet)
+            pad = np.zeros(n_pk * packet - m, np.int64)
+            per = np.concatenate([steps, pad]).reshape(n_pk, packet)
+            lane_iters = float(np.sum(per.max(axis=1)) * packet)
+            util = float(steps.sum() / lane_iters) if lane_iters else None
+        max_steps = MAX_STEPS.get(method)
+        exhausted = int(np.sum(steps >= max_steps)) if max_steps else None
+        row = dict(surface=name, method=method, arithmetic=arithmetic, eps=float(eps),
+                   size=size, tile=tile, packet=packet, lanes=lanes, **extra,
+                   compile_s=compile_s, compile_cached=cached, run_s=run_s,
+                   warmup_s=warm_s, repeats_used=len(times),
+                   mrays_per_s=(n / run_s / 1e6) if run_s else None,
+                   steps_mean=float(steps.mean()), steps_max=int(steps.max()),
+                   steps_total=int(steps.sum()), hit_fraction=float(hit.mean()),
+                   exhausted=exhausted, lane_utilisation=util,
+                   ns_per_step=(run_s / max(int(steps.sum()), 1) * 1e9) if run_s else None)
+        h = np.asarray(ji.from_tiles(hits.hit, tile, size, size)).reshape(-1)
+        t = np.asarray(ji.from_tiles(hits.t, tile, size, size), np.float64).reshape(-1)
+        return row, h, t
+
+    def reference(self, name, size):
+        """float64 reference (t [size^2], raster order) and the seconds it took."""
+        key = (name, size)
+        if key not in self._refs:
+            e = ji.surfaces.get(name)
+            o, d = reference_trace64.camera_rays(e.eye, e.target, e.up, e.fov, size, size)
+            t0 = time.perf_counter()
+            t = reference_t(name, o, d)
+            self._refs[key] = (t, time.perf_counter() - t0)
+        return self._refs[key]
+
+
+# CSG references need reference_trace64.first_change (membership changes along a ray)
+FIRST_CHANGE = getattr(reference_trace64, "first_change", None)
+CSG_PARTS = getattr(reference64, "CSG_PARTS", {})
+
+
+def has_reference(name):
+    if name in CSG_PARTS:
+        return FIRST_CHANGE is not None and name in ("icos.csg", "sesc.csg")
+    return name in reference64.SURFACES
+
+
+def reference_t(name, o, d):
+    """First hit t (inf: none) of float64 rays with a catalogue entry: `first_roots` of
+    f; for the CSG entries `first_change` of their membership (icos.csg: the sign of the
+    lattice ic inside the shell, whose walls only trim and are not drawn; sesc.csg: the
+    region {se < 0} and {sc >= 0})."""
+    e = ji.surfaces.get(name)
+    if name == "icos.csg":
+        parts = CSG_PARTS[name]
+        ic = parts["ic"]
+        r_in = math.sqrt(parts["sphere_inner"](0.0, 0.0, 0.0))  # r^2 - |p|^2
+        r_out = math.sqrt(parts["sphere_outer"](0.0, 0.0, 0.0))
+        t0, t1, _ = reference_trace64.clip_to_box(e.lo, e.hi, o, d)
+        out = np.full(o.shape[0], np.inf)
+        for a, b in shell_segments(o, d, r_in, r_out):
+            t = FIRST_CHANGE(lambda x, y, z, w: ic(x, y, z, w) < 0, o, d,
+                             np.maximum(a, t0), np.minimum(b, t1), w=e.w, eps=REF_EPS)
+            out = np.where(np.isfinite(out), out, t)
+        return out
+    if name == "sesc.csg":
+        se, sc = (CSG_PARTS[name][k] for k in ("se", "sc"))
+        t0, t1, ok = reference_trace64.clip_to_box(e.lo, e.hi, o, d)
+        return FIRST_CHANGE(lambda x, y, z, w: (se(x, y, z, w) < 0) & (sc(x, y, z, w) >= 0),
+                            o, d, np.where(ok, t0, np.inf), t1, w=e.w, eps=REF_EPS)
+    t, _ = reference_trace64.first_roots(reference64.SURFACES[name], e.lo, e.hi, o, d,
+                                         isovalues=e.isovalues, w=e.w, eps=REF_EPS)
+    return t
+
+
+def shell_segments(o, d, r_in, r_out):
+    """Per ray (|d| = 1, t >= 0) the parameter ranges inside the shell
+    r_in < |o + t d| < r_out, before and after the inner ball (empty when a > b)."""
+    b = np.einsum("ij,ij->i", o, d)
+    c = np.einsum("ij,ij->i", o, o)
+
+    def ball(r):
+        disc = b * b - (c - r * r)
+        sq = np.sqrt(np.maximum(disc, 0.0))
+        return np.where(disc > 0, -b - sq, np.inf), np.where(disc > 0, -b + sq, -np.inf)
+
+    a_out, b_out = ball(r_out)
+    a_in, b_in = ball(r_in)
+    miss_in = ~np.isfinite(a_in)
+    first = (np.maximum(a_out, 0.0), np.where(miss_in, b_out, a_in))
+    second = (np.where(miss_in, np.inf, np.maximum(b_in, 0.0)),
+              np.where(miss_in, -np.inf, b_out))
+    return first, second
+
+
+def pad_rays(rays, n, scene):
+    """rays [m] followed by n - m rays that miss the domain box (they start beyond its
+    upper corner and point away from it)."""
+    m = rays.origin.shape[0]
+    far = scene.hi + 10.0 * (scene.hi - scene.lo)
+    o = jnp.broadcast_to(far, (n - m, 3)).astype(jnp.float32)
+    d = jnp.broadcast_to(jnp.array([1.0, 0.0, 0.0], jnp.float32), (n - m, 3))
+    return ji.Rays(jnp.concatenate([rays.origin, o]), jnp.concatenate([rays.direction, d]))
+
+
+def accuracy(hit, t, t_ref):
+    ref_hit = np.isfinite(t_ref)
+    both = hit & ref_hit
+    err = np.abs(t[both] - t_ref[both])
+    return dict(pixel_error=float(np.mean(hit != ref_hit)),
+                depth_err_median=float(np.median(err)) if err.size else None,
+                depth_err_p99=float(np.percentile(err, 99)) if err.size else None)
+
+
+# ---------------------------------------------------------------------------- printing
+
+
+def fmt(v, spec=".3f"):
+    if v is None:
+        return "-"
+    if isinstance(v, str):
+        return v
+    return format(v, spec)
+
+
+def print_table(headers, rows):
+    widths = [max(len(h), *(len(r[i]) for r in rows)) if rows else len(h)
+              for i, h in enumerate(headers)]
+    line = "  ".join(h.rjust(w) for h, w in zip(headers, widths))
+    print(line)
+    print("-" * len(line))
+    for r in rows:
+        print("  ".join(c.rjust(w) for c, w in zip(r, widths)))
+    print()
+
+
+def work_cells(r):
+    return [fmt(r["compile_s"], ".1f") + ("*" if r["compile_cached"] else ""),
+            fmt(r["run_s"]), fmt(r["mrays_per_s"]), fmt(r["steps_mean"], ".1f"),
+            str(r["steps_max"]), fmt(r["hit_fraction"]), fmt(r["exhausted"], "d"),
+            fmt(r["lane_utilisation"], ".2f"), fmt(r["ns_per_step"], ".0f")]
+
+
+WORK_HDR = ["compile s", "run s", "Mrays/s", "steps", "max", "hit", "exh", "util", "ns/step"]
+
+
+# ---------------------------------------------------------------------------- sections
+
+
+def table61(b, cfg):
+    names = cfg["table61_names"]
+    size, csize = cfg["size"], cfg["conv_size"]
+    print(f"== Table 6.1 analog: t-bisection, eps 2^-11, {size}x{size}, tile "
+          f"{RENDER_TILE}x{RENDER_TILE}; converged eps (2^-6..2^-14, hit mask vs float64 "
+          f"reference eps 2^-22 on >= {AGREE:.1%} of pixels) at {csize}x{csize}")
+    rows, summary, printed = [], [], []
+    for name in names:
+        per = {}
+        for arith in ARITHMETICS:
+            row, _, _ = b.run(name, size, EPS_DEFAULT, arithmetic=arith)
+            rows.append(row)
+            per[arith] = row
+        faster = max(ARITHMETICS, key=lambda a: per[a]["mrays_per_s"])
+        s = dict(surface=name, faster=faster,
+                 mrays_interval=per["interval"]["mrays_per_s"],
+                 mrays_affine=per["affine"]["mrays_per_s"], conv_size=csize,
+                 seed_fps=dict(zip(("cpu_ia", "gpu_ia", "gpu_raa"),
+                                   SEED_TABLE61.get(name, (None,) * 3)[:3])),
+                 seed_converged=(SEED_TABLE61[name][3] + " 2^" + str(SEED_TABLE61[name][4])
+                                 if name in SEED_TABLE61 else None))
+        if has_reference(name):
+            t_ref, ref_s = b.reference(name, csize)
+            s["reference_s"] = ref_s
+            s["reference_hit_fraction"] = float(np.mean(np.isfinite(t_ref)))
+            # the conv-size rays run on the size x size executable (padded with rays
+            # that miss), so no second compile
+            ex = size if csize <= size else None
+            for arith in ARITHMETICS:
+                agree = {}
+                s[f"converged_eps_{arith}"] = None
+                for eps in CONVERGED_EPS:  # coarse to fine: the first agreeing is largest
+                    _, h, _ = b.run(name, csize, eps, arithmetic=arith, timed=False,
+                                    exec_size=ex)
+                    agree[log2_label(eps)] = float(np.mean(h == np.isfinite(t_ref)))
+                    if agree[log2_label(eps)] >= AGREE:
+                        s[f"converged_eps_{arith}"] = eps
+                        break
+                s[f"agreement_{arith}"] = agree
+        else:
+            s["converged_note"] = ("no float64 reference (tests/reference_trace64.py has "
+                                   "no first_change for CSG): converged eps skipped")
+            for arith in ARITHMETICS:
+                s[f"converged_eps_{arith}"] = None
+        summary.append(s)
+        for arith in ARITHMETICS:
+            r = per[arith]
+            conv = (log2_label(s[f"converged_eps_{arith}"])
+                    if s.get(f"converged_eps_{arith}") else
+                    ("n/a" if "converged_note" in s else "none"))
+            printed.append([name, arith + (" <" if arith == faster else ""), *work_cells(r),
+                            conv, fmt(s["seed_fps"][{"interval": "gpu_ia",
+                                                     "affine": "gpu_raa"}[arith]], "")])
+        print_table(["surface", "arith", *WORK_HDR, "conv eps", "seed GPU fps"], printed[-2:])
+    print("  '<' marks the faster arithmetic at 2^-11; '*' a compile reused; conv eps: "
+          "2^-6 means 2^-6 or coarser, 'n/a' no reference (CSG), 'none' no eps down to "
+          "2^-14 agrees; util: useful share of lane-iterations; exh: rays that exhausted "
+          "max_steps")
+    skipped = [s["surface"] for s in summary if "converged_note" in s]
+    if skipped:
+        print(f"  converged eps skipped (no float64 reference for CSG): {skipped}")
+    faster = {s["surface"]: s["faster"] for s in summary}
+    print(f"  faster arithmetic per surface: {faster}\n")
+    return dict(size=size, conv_size=csize, eps=EPS_DEFAULT, tile=RENDER_TILE,
+                conv_eps_grid=list(CONVERGED_EPS), agree_threshold=AGREE,
+                reference="tests/reference_trace64.first_roots (CSG: first_change when "
+                          "available), eps 2^-22, 4096 samples",
+                rows=rows, summary=summary)
+
+
+def table62(b, cfg):
+    size = cfg["table62_size"]
+    names = cfg["table62_names"]
+    eps_list = cfg["table62_eps"]
+    print(f"== Table 6.2 analog: interval arithmetic, {size}x{size}, tile "
+          f"{RENDER_TILE}x{RENDER_TILE}")
+    rows, printed = [], []
+    for name in names:
+        for eps in eps_list:
+            for method in ("t-bisection", "k-bisection", "mitchell"):
+                row, _, _ = b.run(name, size, eps, method=method)
+                rows.append(row)
+                printed.append([name, log2_label(eps), method, *work_cells(row)])
+    print_table(["surface", "eps", "method", *WORK_HDR], printed)
+    return dict(size=size, tile=RENDER_TILE, arithmetic="interval", rows=rows,
+                seed_cpu_fps=SEED_TABLE62)
+
+
+def packets(b, cfg):
+    size = cfg["size"]
+    n = size * size
+    name = "barth_sextic"
+    print(f"== Packets: {name}, interval t-bisection, eps 2^-11, {size}x{size}")
+    configs = [dict(label="vmap all rays", tile=RENDER_TILE, packet=n)]
+    configs += [dict(label=f"tiles {t}x{t}", tile=t) for t in cfg["tiles"]]
+    for lanes in cfg["lanes"]:
+        for pk in (n, 16384):
+            if pk > n or (pk == 16384 and pk == n):
+                continue
+            configs.append(dict(label=f"lanes {lanes}, packet "
+                                      f"{'all' if pk == n else pk}",
+                                tile=RENDER_TILE, packet=pk, lanes=lanes))
+    rows, printed = [], []
+    for c in configs:
+        label = c.pop("label")
+        row, _, _ = b.run(name, size, EPS_DEFAULT, **c)
+        row["label"] = label
+        rows.append(row)
+        printed.append([label, *work_cells(row)])
+    print_table(["configuration", *WORK_HDR], printed)
+    best = max(rows, key=lambda r: r["mrays_per_s"])
+    print(f"  fastest: {best['label']} ({best['mrays_per_s']:.3f} Mrays/s)\n")
+    return dict(surface=name, size=size, eps=EPS_DEFAULT, arithmetic="interval", rows=rows,
+                fastest=best["label"])
+
+
+def sweep(b, cfg):
+    size = cfg["sweep_size"]
+    print(f"== Speed vs accuracy: {size}x{size}, reference float64 eps 2^-22; sampling "
+          f"refines to eps 2^-11")
+    configs = [("t-bisection", "interval"), ("t-bisection", "affine"),
+               ("k-bisection", "interval"), ("k-bisection", "affine"),
+               ("mitchell", "interval")]
+    rows = []
+    for name in cfg["sweep_names"]:
+        t_ref, ref_s = b.reference(name, size)
+        print(f"  {name}: reference {ref_s:.1f} s, hit fraction "
+              f"{np.mean(np.isfinite(t_ref)):.3f}")
+        printed = []
+        for method, arith in configs:
+            for eps in cfg["sweep_eps"]:
+                row, h, t = b.run(name, size, eps, method=method, arithmetic=arith)
+                row.update(accuracy(h, t, t_ref), axis="eps", label=f"{method}/{arith}")
+                rows.append(row)
+                printed.append([row["label"], log2_label(eps), fmt(row["mrays_per_s"]),
+                                fmt(row["steps_mean"], ".1f"), fmt(row["pixel_error"], ".4f"),
+                                fmt(row["depth_err_median"], ".2e"),
+                                fmt(row["depth_err_p99"], ".2e")])
+        for samples in cfg["samples"]:
+            row, h, t = b.run(name, size, EPS_DEFAULT, method="sampling", samples=samples)
+            row.update(accuracy(h, t, t_ref), axis="samples", label="sampling")
+            rows.append(row)
+            printed.append(["sampling", f"{samples} smp", fmt(row["mrays_per_s"]),
+                            fmt(row["steps_mean"], ".1f"), fmt(row["pixel_error"], ".4f"),
+                            fmt(row["depth_err_median"], ".2e"),
+                            fmt(row["depth_err_p99"], ".2e")])
+        print(f"  -- {name}")
+        print_table(["method/arith", "eps", "Mrays/s", "steps", "pixel err", "depth med",
+                     "depth p99"], printed)
+    return dict(size=size, eps=list(cfg["sweep_eps"]), samples=list(cfg["samples"]),
+                sampling_eps=EPS_DEFAULT, rows=rows)
+
+
+def target(b, cfg, result):
+    """>= 1 Mray/s on the Barth sextic at eps 2^-11 with the best configuration measured;
+    affine arithmetic is also run in the fastest (interval) packet configuration."""
+    size = cfg["size"]
+    cands, notes = [], []
+    for sec in ("table61", "packets"):
+        for r in result.get(sec, {}).get("rows", []):
+            if (r["surface"] == "barth_sextic" and r["eps"] == EPS_DEFAULT
+                    and r["size"] == size and r["run_s"]):
+                cands.append(r)
+    if not cands:
+        return None
+    if "packets" in result and "table61" in result:
+        t61 = {r["arithmetic"]: r for r in result["table61"]["rows"]
+               if r["surface"] == "barth_sextic"}
+        best_pk = max(result["packets"]["rows"], key=lambda r: r["mrays_per_s"])
+        if not cfg["quick"] and t61:
+            row, _, _ = b.run("barth_sextic", size, EPS_DEFAULT, arithmetic="affine",
+                              tile=best_pk["tile"], packet=best_pk["packet"],
+                              lanes=best_pk["lanes"])
+            row["label"] = "affine, " + best_pk.get("label", "")
+            cands.append(row)
+            notes.append(f"  affine in the fastest packet configuration ({best_pk['label']}): "
+                         f"{row['mrays_per_s']:.3f} Mrays/s (interval "
+                         f"{best_pk['mrays_per_s']:.3f})")
+    best = max(cands, key=lambda r: r["mrays_per_s"])
+    met = best["mrays_per_s"] >= TARGET_MRAYS
+    steps = best["steps_total"]
+    limits = dict(steps_per_ray=best["steps_mean"], steps_max=best["steps_max"],
+                  lane_utilisation=best["lane_utilisation"],
+                  idle_lane_fraction=(1 - best["lane_utilisation"]
+                                      if best["lane_utilisation"] is not None else None),
+                  ns_per_step=best["ns_per_step"],
+                  hit_fraction=best["hit_fraction"],
+                  steps_needed_per_s_for_target=TARGET_MRAYS * 1e6 * best["steps_mean"],
+                  steps_per_s_measured=steps / best["run_s"],
+                  batch_ns_per_box=arith_ns_per_box(best["arithmetic"]))
+    desc = (f"{best['method']}/{best['arithmetic']}, tile {best['tile']}, packet "
+            f"{best['packet']}, lanes {best['lanes']}")
+    print(f"== Target: >= {TARGET_MRAYS} Mray/s on barth_sextic at eps 2^-11, {size}x{size}: "
+          f"best {best['mrays_per_s']:.3f} Mrays/s ({desc}) -> "
+          f"{'MET' if met else 'NOT met'}")
+    for line in notes:
+        print(line)
+    if not met:
+        print(f"  limits: {best['steps_mean']:.1f} steps/ray (max {best['steps_max']}), "
+              + (f"{limits['idle_lane_fraction']:.2f} of lane-iterations idle, "
+                 if limits["idle_lane_fraction"] is not None else
+                 "idle lanes not measured (persistent lanes), ")
+              + f"{best['ns_per_step']:.0f} ns per ray-step; the target needs "
+              f"{limits['steps_needed_per_s_for_target'] / 1e6:.1f} M ray-steps/s, measured "
+              f"{limits['steps_per_s_measured'] / 1e6:.1f} M")
+        if limits["batch_ns_per_box"]:
+            print(f"  for scale: one flat batch of 2^16 {best['arithmetic']} box "
+                  f"evaluations of barth_sextic costs {limits['batch_ns_per_box']:.0f} ns "
+                  f"per box (benchmarks/results/arith_*.json): the rest of a ray-step is "
+                  f"loop and packet overhead")
+    print()
+    return dict(goal_mrays_per_s=TARGET_MRAYS, size=size, met=met, best=best,
+                candidates=[dict(label=r.get("label"), method=r["method"],
+                                 arithmetic=r["arithmetic"], tile=r["tile"],
+                                 packet=r["packet"], lanes=r["lanes"],
+                                 mrays_per_s=r["mrays_per_s"]) for r in cands],
+                best_config=desc, limits=limits)
+
+
+def arith_ns_per_box(arithmetic, surface="barth_sextic"):
+    """ns per box of a flat batch evaluation from bench_arith.py's results, if present."""
+    path = ROOT / "results" / f"arith_{jax.default_backend()}.json"
+    try:
+        rows = json.loads(path.read_text())["rows"]
+    except (OSError, ValueError, KeyError):
+        return None
+    for r in rows:
+        if (r.get("surface") == surface and r.get("arithmetic") == arithmetic
+                and r.get("rounding") == "fast"):
+            return 1e9 / r["boxes_per_s"]
+    return None
+
+
+# ---------------------------------------------------------------------------- charts
+
+
+def charts(result, out_dir, backend):
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib not installed (pip install -e '.[bench]'): no charts")
+        return []
+    paths = []
+    if "sweep" in result:
+        names = sorted({r["surface"] for r in result["sweep"]["rows"]})
+        fig, axes = plt.subplots(1, len(names), figsize=(6.5 * len(names), 5), squeeze=False)
+        for ax, name in zip(axes[0], names):
+            rows = [r for r in result["sweep"]["rows"] if r["surface"] == name]
+            for label in dict.fromkeys(r["label"] for r in rows):
+                rr = [r for r in rows if r["label"] == label]
+                x = [r["mrays_per_s"] for r in rr]
+                # zero pixel error cannot sit on a log axis: floor at 1 pixel's share
+                floor = 0.5 / (rr[0]["size"] ** 2)
+                y = [max(r["pixel_error"], floor) for r in rr]
+                ax.plot(x, y, marker="o", ms=3, label=label)
+                first = rr[0]
+                tag = (f"{first['samples']}" if label == "sampling"
+                       else log2_label(first["eps"]))
+                ax.annotate(tag, (x[0], y[0]), fontsize=7)
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.set_xlabel("Mrays/s")
+            ax.set_ylabel("pixel error (hit mask vs float64 ref.; 0 drawn at 1/2 px)")
+            eps = result["sweep"]["eps"]
+            ax.set_title(f"{name}, {result['sweep']['size']}^2, eps {log2_label(max(eps))}"
+                         f"..{log2_label(min(eps))}; sampling: samples")
+            ax.grid(True, which="both", alpha=0.3)
+            ax.legend(fontsize=7)
+        fig.tight_layout()
+        p = out_dir / f"implicit_{backend}_sweep.png"
+        fig.savefig(p, dpi=110)
+        plt.close(fig)
+        paths.append(p)
+    if "packets" in result:
+        rows = result["packets"]["rows"]
+        fig, ax = plt.subplots(figsize=(8, 4))
+        ax.barh([r["label"] for r in rows], [r["mrays_per_s"] for r in rows])
+        ax.set_xlabel("Mrays/s")
+        ax.set_title(f"barth_sextic IA t-bisection 2^-11, {result['packets']['size']}^2")
+        ax.invert_yaxis()
+        fig.tight_layout()
+        p = out_dir / f"implicit_{backend}_packets.png"
+        fig.savefig(p, dpi=110)
+        plt.close(fig)
+        paths.append(p)
+    if "table61" in result:
+        summ = result["table61"]["summary"]
+        fig, ax = plt.subplots(figsize=(10, 4))
+        x = np.arange(len(summ))
+        ax.bar(x - 0.2, [s["mrays_interval"] for s in summ], 0.4, label="interval")
+        ax.bar(x + 0.2, [s["mrays_affine"] for s in summ], 0.4, label="affine")
+        ax.set_xticks(x, [s["surface"] for s in summ], rotation=45, ha="right")
+        ax.set_ylabel("Mrays/s")
+        ax.set_yscale("log")
+        ax.set_title(f"t-bisection, eps 2^-11, {result['table61']['size']}^2")
+        ax.legend()
+        fig.tight_layout()
+        p = out_dir / f"implicit_{backend}_table61.png"
+        fig.savefig(p, dpi=110)
+        plt.close(fig)
+        paths.append(p)
+    return paths
+
+
+# ---------------------------------------------------------------------------- main
+
+
+def config(args):
+    if args.quick:
+        size = 24
+        return dict(quick=True, size=size, conv_size=size,
+                    table61_names=["barth_sextic", "mitchell"],
+                    table62_size=size, table62_names=["mitchell"], table62_eps=[EPS_DEFAULT],
+                    tiles=[8], lanes=[256], sweep_size=size, sweep_names=["mitchell"],
+                    sweep_eps=[2.0**-6, 2.0**-11], samples=[16])
+    return dict(quick=False, size=args.size, conv_size=args.conv_size,
+                table61_names=(args.names.split(",") if args.names else ji.surfaces.names()),
+                table62_size=args.table62_size, table62_names=["mitchell", "barth_decic"],
+                table62_eps=[EPS_DEFAULT, 2.0**-22], tiles=[2, 4, 8, 16, 32],
+                lanes=[256, 1024, 4096], sweep_size=args.sweep_size,
+                sweep_names=["barth_sextic", "mitchell"], sweep_eps=list(SWEEP_EPS),
+                samples=list(SAMPLES))
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--size", type=int, default=512, help="Table 6.1 and packet image size")
+    p.add_argument("--conv-size", type=int, default=96, help="converged-eps image size")
+    p.add_argument("--table62-size", type=int, default=128)
+    p.add_argument("--sweep-size", type=int, default=128)
+    p.add_argument("--names", default=None,
+                   help="comma-separated Table 6.1 surfaces (default: the whole catalogue)")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--slow-s", type=float, default=2.0,
+                   help="an entry whose warm-up call takes longer is timed by it alone")
+    p.add_argument("--quick", action="store_true", help="tiny smoke run (< 60 s)")
+    p.add_argument("--only", default=",".join(SECTIONS),
+                   help="comma-separated subset of " + ",".join(SECTIONS))
+    p.add_argument("--out", default=str(ROOT / "results"))
+    args = p.parse_args(argv)
+    only = [s.strip() for s in args.only.split(",") if s.strip()]
+    bad = sorted(set(only) - set(SECTIONS))
+    if bad:
+        p.error(f"unknown section(s) {bad}; choose from {SECTIONS}")
+    if args.repeats < 1:
+        p.error("--repeats must be >= 1")
+    if args.names:
+        unknown = sorted(set(args.names.split(",")) - set(ji.surfaces.names()))
+        if unknown:
+            p.error(f"unknown surface(s) {unknown}")
+    cfg = config(args)
+    t_start = time.perf_counter()
+    device = jax.devices()[0]
+    backend = jax.default_backend()
+    out_dir = pathlib.Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    out_path = out_dir / f"implicit_{backend}.json"
+    print(f"jax {jax.__version__}, {backend} ({device.device_kind}), {os.cpu_count()} CPUs, "
+          f"median of {args.repeats} after a warm-up (entries slower than {args.slow_s} s: "
+          f"the warm-up call alone){', QUICK' if args.quick else ''}\n")
+    b = Bench(args.repeats, args.slow_s)
+    result = dict(benchmark="implicit", jax_version=jax.__version__,
+                  jaxiso_version=ji.__version__, backend=backend,
+                  device_kind=device.device_kind, device_count=jax.device_count(),
+                  cpu_count=os.cpu_count(), platform=platform.platform(),
+                  processor=platform.processor(), python=platform.python_version(),
+                  quick=args.quick, repeats=args.repeats, slow_s=args.slow_s,
+                  sections=only, config=cfg, errors={},
+                  timing="compile: AOT lower+compile; run: median of `repeats` calls after "
+                         "one warm-up call (entries whose warm-up exceeds slow_s: the "
+                         "warm-up call), block_until_ready; Mrays/s = pixels / run s")
+
+    def save():
+        result["total_s"] = time.perf_counter() - t_start
+        out_path.write_text(json.dumps(result, indent=1, default=float))
+
+    funcs = dict(table61=table61, table62=table62, packets=packets, sweep=sweep)
+    for sec in SECTIONS:
+        if sec in only:
+            t0 = time.perf_counter()
+            try:
+                result[sec] = funcs[sec](b, cfg)
+            except Exception as e:  # keep the other sections' figures
+                traceback.print_exc()
+                result["errors"][sec] = f"{type(e).__name__}: {e}"
+                print(f"  {sec} FAILED: {type(e).__name__}: {str(e)[:200]}\n")
+                continue
+            result[sec]["section_s"] = time.perf_counter() - t0
+            print(f"  ({sec}: {result[sec]['section_s']:.0f} s)\n")
+            save()
+    try:
+        result["target"] = target(b, cfg, result)
+    except Exception as e:
+        traceback.print_exc()
+        result["errors"]["target"] = f"{type(e).__name__}: {e}"
+        result["target"] = None
+    result["charts"] = [str(p) for p in charts(result, out_dir, backend)]
+    save()
+    print(f"wrote {out_path} ({result['total_s']:.0f} s)")
+    for c in result["charts"]:
+        print(f"wrote {c}")
+    if result["errors"]:
+        print(f"ERRORS in {sorted(result['errors'])}")
+    return result
+
+
+if __name__ == "__main__":
+    main()
