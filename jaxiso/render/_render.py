@@ -19,7 +19,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._camera import Camera, Rays
 from ._image import Image
-from ._scene import DEFAULT_TILE, Hits, from_tiles, intersect, to_tiles
+from ._scene import Hits, default_tile, from_tiles, intersect, to_tiles
 
 __all__ = ["Light", "Shading", "render", "DEFAULT_COLORS"]
 
@@ -94,7 +94,8 @@ def render(scene, camera: Camera, *, shading: Shading | None = None,
       camera: a `Camera`.
       shading: a `Shading` (default: opaque Phong, no shadows).
       light: a `Light` (default: directional, over the viewer's right shoulder).
-      tile: packet edge in pixels (packets of tile x tile rays).
+      tile: packet edge in pixels (packets of tile x tile rays); default: the fastest
+        measured for the backend and arithmetic (`default_tile`).
       devices: None (default device), a list of devices or a `jax.sharding.Mesh`
         with one axis: camera tiles are split across them.
       options: intersection options passed to the scene (method, arithmetic, eps,
@@ -106,7 +107,9 @@ def render(scene, camera: Camera, *, shading: Shading | None = None,
     """
     shading = Shading() if shading is None else shading
     light = Light() if light is None else light
-    tile = DEFAULT_TILE if tile is None else int(tile)
+    if tile is None:
+        tile = default_tile(options.get("arithmetic", getattr(scene, "arithmetic", "interval")))
+    tile = int(tile)
     if tile < 1:
         raise ValueError(f"tile must be >= 1, got {tile}")
     mesh = _as_mesh(devices)

@@ -21,11 +21,20 @@ import jax.numpy as jnp
 
 from ._camera import Rays
 
-__all__ = ["Hits", "intersect", "to_tiles", "from_tiles", "DEFAULT_TILE"]
+__all__ = ["Hits", "intersect", "to_tiles", "from_tiles", "default_tile"]
 
-# Square tile edge used by render when none is given: measured in
-# benchmarks/bench_implicit.py (packet table) on the 2-core CPU.
-DEFAULT_TILE = 8
+# Square tile edge used by render when none is given, per backend and arithmetic, from
+# the packet table of benchmarks/bench_implicit.py on the 2-core CPU: interval t-bisection
+# was fastest in 4x4 tiles (Barth sextic 0.74 Mrays/s vs 0.57 in 8x8; one vmap over the
+# whole image 0.025), affine in 8x8 on most surfaces. Persistent lanes (`lanes=4096`)
+# matched 4x4 tiles at 512^2 but compile 2-4x longer, so they are opt-in. Other backends
+# are unmeasured here (no GPU was lent) and use 8x8.
+_TILES = {("cpu", "interval"): 4, ("cpu", "affine"): 8}
+
+
+def default_tile(arithmetic: str = "interval", backend: str | None = None) -> int:
+    backend = jax.default_backend() if backend is None else backend
+    return _TILES.get((backend, arithmetic), 8)
 
 
 @jax.tree_util.register_dataclass
@@ -68,9 +77,21 @@ def intersect(scene, rays: Rays, *, t_min=0.0, t_max=jnp.inf, packet: int = 64,
 
     Rays are cut into consecutive packets of `packet` rays (the last one padded) that run
     one after another; pass rays in a coherent order (e.g. `to_tiles`) for speed.
-    `t_min`/`t_max` are scalars or arrays broadcastable to S. `options` go to the
-    scene (method, arithmetic, eps, ...). Pure and jit-able; differentiable where the
-    scene says so.
+    `t_min`/`t_max` are scalars or arrays broadcastable to S. Pure and jit-able;
+    `t` is differentiable (implicit function theorem) for implicit and CSG scenes.
+
+    Options for implicit scenes (defaults from the scene):
+      method: "t-bisection" | "k-bisection" | "mitchell" | "sampling" | "sphere".
+      arithmetic: "interval" | "affine".
+      eps: world-space length of the final piece (Eq. 6.19).
+      delta: range tolerance: also accept a piece whose enclosure is narrower.
+      rounding: "fast" (seed) | "outward" (enclosures hold against exact arithmetic).
+      normals: None (jax.grad) or a central-difference stencil width.
+      max_steps: iteration bound per ray (per packet for K-bisection); rays that run
+        out report no hit and steps == max_steps.
+      lanes: run t-bisection on this many persistent lanes with refill (use a large
+        `packet`, e.g. all rays).
+      samples (sampling), lipschitz (sphere, required), refine_steps (mitchell).
     """
     shape = rays.shape
     n = math.prod(shape)
