@@ -220,3 +220,63 @@ def first_roots(f, lo, hi, origins, directions, *, isovalues=(0.0,), w=0.0, t_mi
         t_out[sel[ok]] = tb[ok]
         which_out[sel[ok]] = best[ok]
     return t_out, which_out
+
+
+def first_change(member, origins, directions, t0, t1, *, w=0.0, eps=2.0**-22, samples=4096):
+    """First change of a boolean membership along each ray inside its own segment [t0, t1].
+
+    For CSG references: `member(x, y, z, w)` is a vectorised float64 numpy predicate (e.g.
+    ``(se < 0) & (sc >= 0)`` for the region whose boundary is drawn); t0, t1 [N] are
+    per-ray segment ends (inf or t0 > t1: no segment). member is sampled at `samples` + 1
+    uniform points of [t0, t1]; the first sample interval whose two ends differ is refined
+    by bisection on member (keeping ends of different membership) until its world length
+    |d| dt <= eps |d| (t1 - t0), and the bracket midpoint is returned. Same limitations
+    as `first_roots` (changes thinner than the sample spacing are missed).
+
+    Returns t [N] float64, inf where member never changes on the segment.
+    """
+    o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+    d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    t0 = np.asarray(t0, dtype=np.float64).reshape(-1)
+    t1 = np.asarray(t1, dtype=np.float64).reshape(-1)
+    n = o.shape[0]
+    t_out = np.full(n, np.inf)
+    sel = np.nonzero(np.isfinite(t0) & np.isfinite(t1) & (t0 < t1))[0]
+    if sel.size == 0:
+        return t_out
+
+    def m(idx, t):
+        return _eval(lambda x, y, z, w: member(x, y, z, w).astype(np.float64),
+                     o[idx], d[idx], t, w) > 0.5
+
+    per = max(1, _POINT_BUDGET // (int(samples) + 1))
+    ks = np.arange(int(samples) + 1, dtype=np.float64) / samples
+    for c0 in range(0, sel.size, per):
+        idx = sel[c0:c0 + per]
+        a0, a1 = t0[idx], t1[idx]
+        t = a0[:, None] + (a1 - a0)[:, None] * ks[None, :]
+        v = m(idx, t)
+        ch = v[:, :-1] != v[:, 1:]
+        found = ch.any(axis=1)
+        k = np.argmax(ch, axis=1)
+        rows = np.nonzero(found)[0]
+        if rows.size == 0:
+            continue
+        r_idx = idx[rows]
+        a = t[rows, k[rows]].copy()
+        b = t[rows, k[rows] + 1].copy()
+        ma = v[rows, k[rows]]
+        tol = eps * (t1[r_idx] - t0[r_idx])
+        act = (b - a) > tol
+        for _ in range(_MAX_BISECTIONS):
+            j = np.nonzero(act)[0]
+            if j.size == 0:
+                break
+            mid = a[j] + 0.5 * (b[j] - a[j])
+            same = m(r_idx[j], mid) == ma[j]
+            stuck = (mid <= a[j]) | (mid >= b[j])
+            a[j] = np.where(stuck | ~same, a[j], mid)
+            b[j] = np.where(stuck | same, b[j], mid)
+            act[j] = ~stuck & ((b[j] - a[j]) > tol[j])
+        t_out[r_idx] = 0.5 * (a + b)
+    return t_out

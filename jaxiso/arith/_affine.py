@@ -505,9 +505,32 @@ def _via_interval(fn):
     return rule
 
 
-sin = _via_interval(ia.sin)
+def _sinusoid(fn, dfn, ia_fn, name):
+    """Affine sin / cos by a first-order Taylor form about the centre m:
+    fn(m + h) = fn(m) + dfn(m) h + R with |R| <= h^2 / 2 (|fn''| <= 1), |h| <= rad, so
+    the error term gets rad^2/2 + |dfn(m)| err + rounding. Where that remainder is not
+    small against the radius (wide boxes) or |m| is too large for float32 argument
+    reduction, the interval rule is used instead (correlation dropped)."""
+    eps = float(jnp.finfo(jnp.float32).eps)
+    tiny = float(jnp.finfo(jnp.float32).tiny)
+
+    def rule(x):
+        x = as_affine(x, _n_of(x))
+        m, r = x.center, radius(x)
+        s, c = fn(m), dfn(m)
+        delta = 0.5 * r * r + 2.0 * eps * (jnp.abs(s) + jnp.abs(c) * r + 1.0) + tiny
+        taylor = Affine(s, c[..., None] * x.dev, jnp.abs(c) * x.err + delta, x.defined)
+        fallback = _interval_fallback(ia_fn(_range(x)), x.n)
+        use = (delta <= 0.25 * r) & (jnp.abs(m) <= ia._TRIG_MAX_ARG) & _finite(x)
+        return _select(use, taylor, fallback)
+
+    rule.__name__ = name
+    return rule
+
+
+sin = _sinusoid(jnp.sin, jnp.cos, ia.sin, "sin")
+cos = _sinusoid(jnp.cos, lambda m: -jnp.sin(m), ia.cos, "cos")
 atan2 = _via_interval(ia.atan2)
-cos = _via_interval(ia.cos)
 tan = _via_interval(ia.tan)
 floor = _via_interval(ia.floor)
 ceil = _via_interval(ia.ceil)
