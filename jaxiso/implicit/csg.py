@@ -160,11 +160,13 @@ class CSG:
 
     def intersect_packet(self, rays, t_min, t_max, *, method=None, arithmetic=None,
                          eps=None, rounding="fast", normals=None, max_steps=None,
-                         lanes=None, delta=None) -> Hits:
+                         lanes=None, delta=None, **method_options) -> Hits:
         method = self.method if method is None else method
         if method not in ("t-bisection", "k-bisection"):
             raise ValueError(f"CSG scenes support 't-bisection' and 'k-bisection', got "
                              f"{method!r}")
+        if method_options:
+            raise TypeError(f"unknown options for a CSG scene: {sorted(method_options)}")
         arithmetic = self.arithmetic if arithmetic is None else arithmetic
         eps = self.eps if eps is None else jnp.asarray(eps, jnp.float32)
         scene = jax.lax.stop_gradient(self)
