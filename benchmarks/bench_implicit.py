@@ -50,7 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxiso as ji
-from jaxiso.render._scene import DEFAULT_TILE
+from jaxiso.render._scene import default_tile
 
 ROOT = pathlib.Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT.parent / "tests"))
@@ -66,10 +66,10 @@ SAMPLES = (16, 64, 256)
 AGREE = 0.995
 REF_EPS = 2.0**-22
 TARGET_MRAYS = 1.0
-RENDER_TILE = DEFAULT_TILE  # the render path's packet edge
+RENDER_TILE = default_tile("interval")  # the render path's packet edge (interval)
 # bisection's default loop bound (jaxiso.implicit._scene.run_bisection)
 MAX_DEPTH = 30
-MAX_STEPS = {"t-bisection": 64 * MAX_DEPTH, "k-bisection": 8 * 64 * MAX_DEPTH}
+MAX_STEPS = {"t-bisection": 256 * MAX_DEPTH, "k-bisection": 8 * 256 * MAX_DEPTH}
 
 # Seed Table 6.1 (frames/s at 1024^2; CPU: 4-core Xeon SSE, IA; GPU: 8800 GTX) and the
 # converged eps column, for side-by-side reading (1 fps = 1.048576 Mrays/s).
@@ -136,7 +136,7 @@ class Bench:
         return entry, False
 
     def run(self, name, size, eps, *, method="t-bisection", arithmetic="interval",
-            tile=RENDER_TILE, packet=None, lanes=None, timed=True, exec_size=None,
+            tile=None, packet=None, lanes=None, timed=True, exec_size=None,
             **extra):
         """One configuration: returns (row dict, image-ordered hit mask, image-ordered t).
 
@@ -144,6 +144,7 @@ class Bench:
         alone (repeats_used 0). exec_size: run on the executable compiled for
         exec_size^2 rays (>= size^2): the size^2 camera rays followed by rays that miss
         the domain, so no new compile (for masks; the timing includes empty packets)."""
+        tile = default_tile(arithmetic) if tile is None else tile  # as render does
         packet = tile * tile if packet is None else int(packet)
         ex = size if exec_size is None else exec_size
         (exe, compile_s), cached = self.compiled(name, ex, tile, method, arithmetic,
@@ -318,8 +319,9 @@ WORK_HDR = ["compile s", "run s", "Mrays/s", "steps", "max", "hit", "exh", "util
 def table61(b, cfg):
     names = cfg["table61_names"]
     size, csize = cfg["size"], cfg["conv_size"]
-    print(f"== Table 6.1 analog: t-bisection, eps 2^-11, {size}x{size}, tile "
-          f"{RENDER_TILE}x{RENDER_TILE}; converged eps (2^-6..2^-14, hit mask vs float64 "
+    tiles = {a: default_tile(a) for a in ARITHMETICS}
+    print(f"== Table 6.1 analog: t-bisection, eps 2^-11, {size}x{size}, tiles {tiles} "
+          f"(render defaults); converged eps (2^-6..2^-14, hit mask vs float64 "
           f"reference eps 2^-22 on >= {AGREE:.1%} of pixels) at {csize}x{csize}")
     rows, summary, printed = [], [], []
     for name in names:
@@ -378,8 +380,8 @@ def table61(b, cfg):
         print(f"  converged eps skipped (no float64 reference for CSG): {skipped}")
     faster = {s["surface"]: s["faster"] for s in summary}
     print(f"  faster arithmetic per surface: {faster}\n")
-    return dict(size=size, conv_size=csize, eps=EPS_DEFAULT, tile=RENDER_TILE,
-                conv_eps_grid=list(CONVERGED_EPS), agree_threshold=AGREE,
+    return dict(size=size, conv_size=csize, eps=EPS_DEFAULT,
+                tile=tiles, conv_eps_grid=list(CONVERGED_EPS), agree_threshold=AGREE,
                 reference="tests/reference_trace64.first_roots (CSG: first_change when "
                           "available), eps 2^-22, 4096 samples",
                 rows=rows, summary=summary)
