@@ -199,7 +199,9 @@ def test_render_sharded_over_devices_equals_single_device():
         four = ji.render(scene, cam, devices=jax.devices())
         mesh = jax.sharding.Mesh(np.array(jax.devices()), ("tiles",))
         four_mesh = ji.render(scene, cam, devices=mesh, tile=4)
+        lanes = ji.render(scene, cam, devices=jax.devices(), lanes=32)
         assert np.allclose(one, four, atol=1e-6) and np.allclose(one, four_mesh, atol=1e-6)
+        assert np.allclose(one, lanes, atol=1e-5)
         assert (one.sum(-1) < 2.9).sum() > 20
         print("ok")
     """)

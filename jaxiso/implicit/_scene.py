@@ -85,6 +85,9 @@ class ImplicitSurface:
     def has_params(self) -> bool:
         return len(jax.tree_util.tree_leaves(self.params)) > 0
 
+    # render: persistent lanes pay off for large images (see jaxiso/render/_render.py)
+    prefers_lanes = True
+
     @property
     def field(self):
         """``g(x, y, z, w, params)``."""
