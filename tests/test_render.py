@@ -275,6 +275,15 @@ def test_division_asymptotes_are_not_drawn():
     np.testing.assert_allclose(p[:, 1] * p[:, 0], 1.0, atol=0.05)
 
 
+def test_shading_rejects_unsupported_combinations():
+    with pytest.raises(ValueError):
+        ji.Shading(layers=2, reflections=1)
+    with pytest.raises(ValueError):
+        ji.Shading(layers=0)
+    with pytest.raises(ValueError):
+        ji.Shading(colors=(1.0, 0.0, 0.0))
+
+
 def test_bad_scene_input():
     with pytest.raises(ValueError):
         ji.ImplicitSurface(sphere, (1.0, 0, 0), (0.0, 1, 1), params={"r": 1.0})

@@ -82,6 +82,9 @@ class Shading:
             raise ValueError(f"colors must be [C, 3], got shape {c.shape}")
         if self.layers < 1 or self.reflections < 0:
             raise ValueError("layers must be >= 1 and reflections >= 0")
+        if self.layers > 1 and self.reflections > 0:
+            raise ValueError("reflections are traced for opaque shading only (layers=1); "
+                             "transparency with reflections is not supported")
 
 
 def render(scene, camera: Camera, *, shading: Shading | None = None,
