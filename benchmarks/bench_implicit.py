@@ -215,51 +215,12 @@ def has_reference(name):
 
 
 def reference_t(name, o, d):
-    """First hit t (inf: none) of float64 rays with a catalogue entry: `first_roots` of
-    f; for the CSG entries `first_change` of their membership (icos.csg: the sign of the
-    lattice ic inside the shell, whose walls only trim and are not drawn; sesc.csg: the
-    region {se < 0} and {sc >= 0})."""
+    """First hit t (inf: none) of float64 rays with a catalogue entry
+    (tests/reference_trace64.catalogue_first_hits)."""
     e = ji.surfaces.get(name)
-    if name == "icos.csg":
-        parts = CSG_PARTS[name]
-        ic = parts["ic"]
-        r_in = math.sqrt(parts["sphere_inner"](0.0, 0.0, 0.0))  # r^2 - |p|^2
-        r_out = math.sqrt(parts["sphere_outer"](0.0, 0.0, 0.0))
-        t0, t1, _ = reference_trace64.clip_to_box(e.lo, e.hi, o, d)
-        out = np.full(o.shape[0], np.inf)
-        for a, b in shell_segments(o, d, r_in, r_out):
-            t = FIRST_CHANGE(lambda x, y, z, w: ic(x, y, z, w) < 0, o, d,
-                             np.maximum(a, t0), np.minimum(b, t1), w=e.w, eps=REF_EPS)
-            out = np.where(np.isfinite(out), out, t)
-        return out
-    if name == "sesc.csg":
-        se, sc = (CSG_PARTS[name][k] for k in ("se", "sc"))
-        t0, t1, ok = reference_trace64.clip_to_box(e.lo, e.hi, o, d)
-        return FIRST_CHANGE(lambda x, y, z, w: (se(x, y, z, w) < 0) & (sc(x, y, z, w) >= 0),
-                            o, d, np.where(ok, t0, np.inf), t1, w=e.w, eps=REF_EPS)
-    t, _ = reference_trace64.first_roots(reference64.SURFACES[name], e.lo, e.hi, o, d,
-                                         isovalues=e.isovalues, w=e.w, eps=REF_EPS)
-    return t
-
-
-def shell_segments(o, d, r_in, r_out):
-    """Per ray (|d| = 1, t >= 0) the parameter ranges inside the shell
-    r_in < |o + t d| < r_out, before and after the inner ball (empty when a > b)."""
-    b = np.einsum("ij,ij->i", o, d)
-    c = np.einsum("ij,ij->i", o, o)
-
-    def ball(r):
-        disc = b * b - (c - r * r)
-        sq = np.sqrt(np.maximum(disc, 0.0))
-        return np.where(disc > 0, -b - sq, np.inf), np.where(disc > 0, -b + sq, -np.inf)
-
-    a_out, b_out = ball(r_out)
-    a_in, b_in = ball(r_in)
-    miss_in = ~np.isfinite(a_in)
-    first = (np.maximum(a_out, 0.0), np.where(miss_in, b_out, a_in))
-    second = (np.where(miss_in, np.inf, np.maximum(b_in, 0.0)),
-              np.where(miss_in, -np.inf, b_out))
-    return first, second
+    return reference_trace64.catalogue_first_hits(
+        name, reference64.SURFACES.get(name), CSG_PARTS.get(name), e.lo, e.hi, o, d,
+        isovalues=e.isovalues, w=e.w, eps=REF_EPS)
 
 
 def pad_rays(rays, n, scene):

@@ -280,3 +280,50 @@ def first_change(member, origins, directions, t0, t1, *, w=0.0, eps=2.0**-22, sa
             act[j] = ~stuck & ((b[j] - a[j]) > tol[j])
         t_out[r_idx] = 0.5 * (a + b)
     return t_out
+
+
+def shell_segments(o, d, r_in, r_out):
+    """Per ray (|d| = 1, t >= 0) the parameter ranges inside the shell
+    r_in < |o + t d| < r_out, before and after the inner ball (empty when a > b)."""
+    b = np.einsum("ij,ij->i", o, d)
+    c = np.einsum("ij,ij->i", o, o)
+
+    def ball(r):
+        disc = b * b - (c - r * r)
+        sq = np.sqrt(np.maximum(disc, 0.0))
+        return np.where(disc > 0, -b - sq, np.inf), np.where(disc > 0, -b + sq, -np.inf)
+
+    a_out, b_out = ball(r_out)
+    a_in, b_in = ball(r_in)
+    miss_in = ~np.isfinite(a_in)
+    first = (np.maximum(a_out, 0.0), np.where(miss_in, b_out, a_in))
+    second = (np.where(miss_in, np.inf, np.maximum(b_in, 0.0)),
+              np.where(miss_in, -np.inf, b_out))
+    return first, second
+
+
+def catalogue_first_hits(name, f, parts, lo, hi, o, d, *, isovalues=(0.0,), w=0.0,
+                         eps=2.0**-22):
+    """First hit t (inf: none) of float64 rays with a catalogue entry, from its float64
+    function f (reference64.SURFACES) or, for the CSG entries, its parts
+    (reference64.CSG_PARTS): icos.csg draws the lattice ic inside the shell, whose walls
+    only trim (first sign change of ic inside it); sesc.csg is the boundary of
+    {se < 0} and {sc >= 0} (first change of membership)."""
+    if name == "icos.csg":
+        ic = parts["ic"]
+        r_in = np.sqrt(parts["sphere_inner"](0.0, 0.0, 0.0))  # written r^2 - |p|^2
+        r_out = np.sqrt(parts["sphere_outer"](0.0, 0.0, 0.0))
+        t0, t1, _ = clip_to_box(lo, hi, o, d)
+        out = np.full(o.shape[0], np.inf)
+        for a, b in shell_segments(o, d, r_in, r_out):
+            t = first_change(lambda x, y, z, w: ic(x, y, z, w) < 0, o, d,
+                             np.maximum(a, t0), np.minimum(b, t1), w=w, eps=eps)
+            out = np.where(np.isfinite(out), out, t)
+        return out
+    if name == "sesc.csg":
+        se, sc = parts["se"], parts["sc"]
+        t0, t1, ok = clip_to_box(lo, hi, o, d)
+        return first_change(lambda x, y, z, w: (se(x, y, z, w) < 0) & (sc(x, y, z, w) >= 0),
+                            o, d, np.where(ok, t0, np.inf), t1, w=w, eps=eps)
+    t, _ = first_roots(f, lo, hi, o, d, isovalues=isovalues, w=w, eps=eps)
+    return t

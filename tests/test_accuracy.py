@@ -19,7 +19,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import reference64
-from reference_trace64 import camera_rays, clip_to_box, first_change, first_roots
+from reference_trace64 import (
+    camera_rays,
+    catalogue_first_hits,
+    clip_to_box,
+    first_change,
+)
 
 import jaxiso as ji
 
@@ -52,47 +57,12 @@ def f64_at(name, p):
 # ------------------------------------------------------------------- float64 references
 
 
-def _shell_segments(o, d, r_in, r_out):
-    """Per-ray parameter ranges inside the shell r_in < |o + t d| < r_out (|d| = 1):
-    the part before the inner sphere and the part after it (inf / -inf: none)."""
-    b = np.einsum("ij,ij->i", o, d)
-    c = np.einsum("ij,ij->i", o, o)
-
-    def sphere(r):
-        disc = b * b - (c - r * r)
-        sq = np.sqrt(np.maximum(disc, 0.0))
-        return np.where(disc > 0, -b - sq, np.inf), np.where(disc > 0, -b + sq, -np.inf)
-
-    a_out, b_out = sphere(r_out)
-    a_in, b_in = sphere(r_in)
-    miss_in = ~np.isfinite(a_in)
-    first = (np.maximum(a_out, 0.0), np.where(miss_in, b_out, a_in))
-    second = (np.where(miss_in, np.inf, b_in), np.where(miss_in, -np.inf, b_out))
-    return first, second
-
-
 def reference_t(name, o, d):
     """First hit t (inf: none) of float64 rays o + t d with the catalogue entry `name`."""
     e = S.get(name)
-    if name == "icos.csg":
-        # the lattice ic = 0 where it lies in the shell 3.5 < |p| < 4.5 (the shell only
-        # trims: its walls are not drawn, so only sign changes of ic inside it count)
-        ic = reference64.CSG_PARTS[name]["ic"]
-        t0, t1, _ = clip_to_box(e.lo, e.hi, o, d)
-        out = np.full(o.shape[0], np.inf)
-        for a, b in _shell_segments(o, d, 3.5, 4.5):  # reference64.icos_sphere_*
-            t = first_change(lambda x, y, z, w: ic(x, y, z, w) < 0, o, d,
-                             np.maximum(a, t0), np.minimum(b, t1), w=e.w, eps=REF_EPS)
-            out = np.where(np.isfinite(out), out, t)
-        return out
-    if name == "sesc.csg":
-        # the boundary of {se < 0} and {sc >= 0}: the first change of membership
-        se, sc = (reference64.CSG_PARTS[name][k] for k in ("se", "sc"))
-        t0, t1, ok = clip_to_box(e.lo, e.hi, o, d)
-        return first_change(lambda x, y, z, w: (se(x, y, z, w) < 0) & (sc(x, y, z, w) >= 0),
-                            o, d, np.where(ok, t0, np.inf), t1, w=e.w, eps=REF_EPS)
-    t, _ = first_roots(reference64.SURFACES[name], e.lo, e.hi, o, d, w=e.w, eps=REF_EPS)
-    return t
+    return catalogue_first_hits(name, reference64.SURFACES.get(name),
+                                reference64.CSG_PARTS.get(name), e.lo, e.hi, o, d,
+                                isovalues=e.isovalues, w=e.w, eps=REF_EPS)
 
 
 @functools.cache
