@@ -16,8 +16,6 @@ import jax.numpy as jnp
 
 from ..arith import Affine, Interval, aa, extend, ia
 
-METHODS = ("t-bisection", "k-bisection", "mitchell", "sampling", "sphere")
-
 
 def as_field(f, has_params: bool):
     """``g(x, y, z, w, params)`` calling f with the arguments it declares."""
@@ -145,5 +143,5 @@ def point_normal(g, p, w, params, direction, stencil=None):
     return jnp.where(ok, grad / jnp.where(ok, norm, 1.0), facing)
 
 
-__all__ = ["METHODS", "as_field", "ray_boxes", "enclosure", "contains_any", "extended",
+__all__ = ["as_field", "ray_boxes", "enclosure", "contains_any", "extended",
            "clip_to_box", "ray_segments", "point_normal", "ia"]

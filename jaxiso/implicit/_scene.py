@@ -112,7 +112,7 @@ class ImplicitSurface:
         g = scene.field
         if method in ("t-bisection", "k-bisection"):
             F = extended(g, arithmetic, rounding)
-            res = _interval_method(method, F, g, scene, p, D, inside, eps, delta,
+            res = _interval_method(method, F, scene, p, D, inside, eps, delta,
                                    arithmetic, max_steps, lanes)
         else:
             from . import _baselines
@@ -122,7 +122,7 @@ class ImplicitSurface:
         return finish_hits(g, self, rays, t_raw, res.hit, res.steps, normals)
 
 
-def _interval_method(method, F, g, scene, p, D, inside, eps, delta, arithmetic, max_steps,
+def _interval_method(method, F, scene, p, D, inside, eps, delta, arithmetic, max_steps,
                      lanes=None):
     tol = jnp.float32(-1.0) if delta is None else jnp.float32(delta)
 

@@ -19,7 +19,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._camera import Camera, Rays
 from ._image import Image
-from ._scene import Hits, default_tile, from_tiles, intersect, to_tiles
+from ._scene import default_tile, from_tiles, intersect, to_tiles
 
 __all__ = ["Light", "Shading", "render", "DEFAULT_COLORS"]
 
@@ -291,8 +291,3 @@ def _facing(normal, direction):
     """Normals flipped to face the incoming ray (two-sided shading)."""
     s = jnp.sum(normal * direction, axis=-1, keepdims=True)
     return jnp.where(s > 0, -normal, normal)
-
-
-def hits_to_depth(hits: Hits, camera: Camera) -> jax.Array:
-    """Depth image [H, W] (ray parameter; inf where missed) from image-shaped hits."""
-    return hits.t.reshape(camera.height, camera.width)
