@@ -1,0 +1,235 @@
+"""`TetIsosurface`: isosurfaces of a piecewise-linear field on a tetrahedral mesh (ch. 5).
+
+Implements the scene protocol (`intersect_packet`) by traversing the implicit BVH and
+intersecting marching-tets isopolygons. Within a tet the field is linear, so the hit is
+t = (iso - F(o)) / (grad F . d) in closed form; it is recomputed from the hit tet with
+jax.numpy after the loop, which makes `t` (and the normal) differentiable with respect to
+the isovalues, the vertex values, the vertex positions and the rays (the implicit
+function theorem for a linear field) without differentiating the loop.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..render._scene import Hits
+from ._bvh import BVH, build_bvh, refit_jax
+from ._isopoly import tet_gradient
+from ._mesh import TetMesh
+from ._traverse import traverse
+
+__all__ = ["TetIsosurface"]
+
+NORMALS = ("flat", "smooth")
+
+
+@dataclasses.dataclass(frozen=True)
+class TetIsosurface:
+    """The level sets ``F = iso`` of the linear interpolant of vertex values on tets.
+
+    Attributes:
+      mesh: `TetMesh` (points, tets, values per time step).
+      bvh: the implicit BVH, bounds valid for `time_step` and the mesh's points.
+      isovalues: [K] float32; `Hits.surface` says which one was hit.
+      time_step: int32 [] (traced: switching steps does not retrace).
+      clip_lo, clip_hi: [3] world-space clip box (default: the mesh's bounds).
+      vertex_gradients: [V, 3] area-weighted field gradients for smooth normals, or None.
+      normals: "flat" (the tet's gradient) or "smooth" (vertex gradients interpolated).
+    """
+
+    mesh: TetMesh
+    bvh: BVH
+    isovalues: jax.Array
+    time_step: jax.Array
+    clip_lo: jax.Array
+    clip_hi: jax.Array
+    vertex_gradients: jax.Array | None
+    normals: str = "flat"
+
+    prefers_lanes = False
+
+    def __init__(self, mesh, isovalues, *, bvh="bih", leaf_size=8, clip_box=None,
+                 time_step=0, normals="flat"):
+        if not isinstance(mesh, TetMesh):
+            raise TypeError(f"mesh must be a TetMesh (tet_mesh(points, tets, values), "
+                            f"from_meshio, from_pyvista), got {type(mesh).__name__}")
+        if normals not in NORMALS:
+            raise ValueError(f"normals must be one of {NORMALS}, got {normals!r}")
+        step = int(time_step)
+        if not 0 <= step < mesh.n_steps:
+            raise ValueError(f"time_step {step} out of range: the mesh has {mesh.n_steps}")
+        if isinstance(bvh, str):
+            bvh = build_bvh(mesh, method=bvh, leaf_size=leaf_size, step=step)
+        elif not isinstance(bvh, BVH):
+            raise TypeError(f"bvh must be 'bih', 'sah' or a BVH, got {type(bvh).__name__}")
+        bvh = jax.tree_util.tree_map(jnp.asarray, bvh)  # traversal indexes with tracers
+        iso = jnp.atleast_1d(jnp.asarray(isovalues, jnp.float32))
+        if iso.ndim != 1 or iso.size == 0 or not np.all(np.isfinite(np.asarray(iso))):
+            raise ValueError(f"isovalues must be a finite scalar or 1-D list, got {isovalues}")
+        pts = np.asarray(mesh.points)
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        if clip_box is not None:
+            c_lo, c_hi = (np.broadcast_to(np.asarray(c, np.float32), (3,)) for c in clip_box)
+            if np.any(c_lo > c_hi):
+                raise ValueError(f"clip box needs lo <= hi, got {c_lo} and {c_hi}")
+            lo, hi = np.maximum(lo, c_lo), np.minimum(hi, c_hi)
+        values = {"mesh": mesh, "bvh": bvh, "isovalues": iso,
+                  "time_step": jnp.int32(step), "clip_lo": jnp.asarray(lo, jnp.float32),
+                  "clip_hi": jnp.asarray(hi, jnp.float32), "vertex_gradients": None,
+                  "normals": normals}
+        for name, value in values.items():
+            object.__setattr__(self, name, value)
+        if normals == "smooth":
+            object.__setattr__(self, "vertex_gradients", _vertex_gradients(
+                mesh.points, mesh.tets, jnp.asarray(mesh.values)[step]))
+
+    # -- the renderer reads these
+    @property
+    def lo(self):
+        return self.clip_lo
+
+    @property
+    def hi(self):
+        return self.clip_hi
+
+    @property
+    def eps(self):
+        """Offset scale for secondary rays: 1e-5 of the scene's diagonal."""
+        return 1e-5 * jnp.linalg.norm(self.clip_hi - self.clip_lo)
+
+    # -- changes without a rebuild (all jit-able)
+    def with_isovalues(self, isovalues) -> TetIsosurface:
+        return _replace(self, isovalues=jnp.atleast_1d(jnp.asarray(isovalues, jnp.float32)))
+
+    def with_time_step(self, step) -> TetIsosurface:
+        """Another time step: the BVH's value bounds are refit (Schema II), the tree kept."""
+        step = jnp.asarray(step, jnp.int32)
+        values = jnp.asarray(self.mesh.values)[step]
+        bvh = refit_jax(self.bvh, jnp.asarray(self.mesh.points), values,
+                        jnp.asarray(self.mesh.tets))
+        return _replace(self, bvh=bvh, time_step=step,
+                        vertex_gradients=self._gradients(self.mesh.points, values))
+
+    def with_points(self, points) -> TetIsosurface:
+        """Moved vertices (same tets): the BVH's boxes are refit, the tree kept (Schema II).
+        Large motions loosen the tree; rebuild with `TetIsosurface(mesh, ...)` (Schema I)."""
+        points = jnp.asarray(points, jnp.float32)
+        values = jnp.asarray(self.mesh.values)[self.time_step]
+        bvh = refit_jax(self.bvh, points, values, jnp.asarray(self.mesh.tets))
+        mesh = dataclasses.replace(self.mesh, points=points)
+        return _replace(self, mesh=mesh, bvh=bvh,
+                        vertex_gradients=self._gradients(points, values))
+
+    def _gradients(self, points, values):
+        if self.vertex_gradients is None:
+            return None
+        return _vertex_gradients(points, self.mesh.tets, values)
+
+    def intersect_packet(self, rays, t_min, t_max, *, normals=None, max_steps=None,
+                         eps=None) -> Hits:
+        """First hits of one packet of rays [P] (see `jaxiso.intersect`). `eps` (the
+        renderer's precision knob for shadow rays) has no effect: hits are exact."""
+        normals = self.normals if normals is None else normals
+        if normals not in NORMALS:
+            raise ValueError(f"normals must be one of {NORMALS}, got {normals!r}")
+        if normals == "smooth" and self.vertex_gradients is None:
+            raise ValueError("smooth normals need TetIsosurface(..., normals='smooth')")
+        o, d = rays.origin, rays.direction
+        points = jnp.asarray(self.mesh.points)
+        tets = jnp.asarray(self.mesh.tets)
+        values = jnp.asarray(self.mesh.values)[self.time_step]
+        t0, t1 = _slab(o, d, self.clip_lo, self.clip_hi)
+        t_lo = jnp.maximum(t_min, t0)
+        t_hi = jnp.minimum(t_max, t1)
+        stop = jax.lax.stop_gradient
+        t_raw, hit, which, tet, nodes, leaves = traverse(
+            stop(self.bvh), stop(points), tets, stop(values), stop(self.isovalues),
+            stop(o), stop(d), stop(t_lo), stop(t_hi), max_steps=max_steps)
+        # closed-form t on the hit tet: differentiable, and equal to the loop's value
+        ids = tets[jnp.maximum(tet, 0)]
+        p, f = points[ids], values[ids]
+        grad = tet_gradient(p, f)
+        iso = self.isovalues[jnp.maximum(which, 0)]
+        slope = jnp.sum(grad * d, axis=-1)
+        f_o = f[:, 0] + jnp.sum(grad * (o - p[:, 0]), axis=-1)
+        safe = jnp.where(hit & (slope != 0), slope, 1.0)
+        t = jnp.where(hit, (iso - f_o) / safe, jnp.inf)
+        if normals == "smooth":
+            x = o + jnp.where(hit, t, 0.0)[:, None] * d
+            n = _interpolate(p, self.vertex_gradients[ids], x)
+        else:
+            n = grad
+        norm = jnp.linalg.norm(n, axis=-1, keepdims=True)
+        ok = (norm > 0) & jnp.isfinite(norm)
+        facing = -d / jnp.linalg.norm(d, axis=-1, keepdims=True)
+        normal = jnp.where(ok, n / jnp.where(ok, norm, 1.0), facing)
+        return Hits(t=t, hit=hit, normal=jnp.where(hit[:, None], normal, 0.0),
+                    surface=jnp.where(hit, which, -1), steps=nodes)
+
+    def memory_report(self) -> dict:
+        """Bytes of the mesh and the BVH (seed Table 5.5 analog)."""
+        from ._bvh import memory_report
+
+        return memory_report(self.bvh, self.mesh)
+
+
+def _slab(o, d, lo, hi):
+    inv = 1.0 / d
+    ta, tb = (lo - o) * inv, (hi - o) * inv
+    near = jnp.where(jnp.isnan(ta), -jnp.inf, jnp.minimum(ta, tb))
+    far = jnp.where(jnp.isnan(tb), jnp.inf, jnp.maximum(ta, tb))
+    return jnp.max(near, axis=-1), jnp.min(far, axis=-1)
+
+
+def _interpolate(p, vertex_values, x):
+    """Linear interpolation in tets p [P, 4, 3] of per-vertex vectors [P, 4, C] at x [P, 3]."""
+    eye = jnp.eye(4, dtype=jnp.float32)
+    lam = []
+    for i in range(4):
+        g = tet_gradient(p, jnp.broadcast_to(eye[i], p.shape[:-1]))
+        lam.append(eye[i][0] + jnp.sum(g * (x - p[:, 0]), axis=-1))
+    lam = jnp.stack(lam, axis=-1)
+    return jnp.sum(lam[..., None] * vertex_values, axis=-2)
+
+
+def _vertex_gradients(points, tets, values):
+    """[V, 3] volume-weighted mean of the gradients of the tets around each vertex."""
+    points = jnp.asarray(points, jnp.float32)
+    tets = jnp.asarray(tets)
+    p = points[tets]
+    grad = tet_gradient(p, jnp.asarray(values)[tets])
+    e = p[:, 1:] - p[:, :1]
+    vol = jnp.abs(jnp.sum(e[:, 0] * jnp.cross(e[:, 1], e[:, 2]), axis=-1))
+    weighted = jnp.repeat((grad * vol[:, None])[:, None, :], 4, axis=1).reshape(-1, 3)
+    sums = jax.ops.segment_sum(weighted, tets.reshape(-1), points.shape[0])
+    total = jax.ops.segment_sum(jnp.repeat(vol, 4), tets.reshape(-1), points.shape[0])
+    return sums / jnp.maximum(total, 1e-30)[:, None]
+
+
+def _replace(scene, **changes):
+    new = object.__new__(TetIsosurface)
+    for f in dataclasses.fields(TetIsosurface):
+        object.__setattr__(new, f.name, changes.get(f.name, getattr(scene, f.name)))
+    return new
+
+
+_DATA = ("mesh", "bvh", "isovalues", "time_step", "clip_lo", "clip_hi", "vertex_gradients")
+
+
+def _flatten(s):
+    return tuple(getattr(s, n) for n in _DATA), (s.normals,)
+
+
+def _unflatten(aux, children):
+    s = object.__new__(TetIsosurface)
+    for name, v in zip(_DATA, children):
+        object.__setattr__(s, name, v)
+    object.__setattr__(s, "normals", aux[0])
+    return s
+
+
+jax.tree_util.register_pytree_node(TetIsosurface, _flatten, _unflatten)

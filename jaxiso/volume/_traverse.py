@@ -1,0 +1,171 @@
+"""Stackless ray traversal of a min/max hierarchy over voxel cells (seed Sec. 3.3.3, 4.4).
+
+One `lax.while_loop` over a packet of rays [P]. Each iteration, every active ray
+  1. locates the current voxel cell `v` in the hierarchy, going down until a node whose
+     [min, max] holds no isovalue (culled) or a cell to intersect (`Hierarchy.locate`);
+  2. if it reached a cell, intersects the trilinear patch exactly (`_cell`), under a
+     `lax.cond` so that packets where no ray reached a cell skip that work;
+  3. otherwise (or on a miss) moves to the exit of the culled node or the cell.
+Positions are integer voxel coordinates carried in the state, so a step never depends on
+re-rounding a world-space point; the exit face of the node decides the next cell.
+
+The hierarchy is pluggable: the octree volume (restart from the root, or neighbour
+finding from the parent trace, Sec. 3.3.2.2) and the dense macrocell grid baseline
+(Parker et al., Sec. 3.5.1) share everything below `locate`.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _cell
+
+__all__ = ["slab", "traverse", "voxel_ray"]
+
+
+def voxel_ray(origin, spacing, o, d):
+    """World rays o + t d [P, 3] in voxel coordinates: q(t) = q0 + t dq (t unchanged)."""
+    inv = 1.0 / spacing
+    return (o - origin) * inv, d * inv
+
+
+def slab(q0, dq, lo, hi):
+    """Entry and exit t [P] of rays q0 + t dq through the boxes [lo, hi] (inclusive);
+    axis-parallel rays are inside an axis's slab for all t or for none."""
+    safe = jnp.where(dq == 0, 1.0, dq)
+    ta = (lo - q0) / safe
+    tb = (hi - q0) / safe
+    inside = (q0 >= lo) & (q0 <= hi)
+    near = jnp.where(dq == 0, jnp.where(inside, -jnp.inf, jnp.inf), jnp.minimum(ta, tb))
+    far = jnp.where(dq == 0, jnp.where(inside, jnp.inf, -jnp.inf), jnp.maximum(ta, tb))
+    return jnp.max(near, axis=-1), jnp.min(far, axis=-1)
+
+
+def _exit(q0, dq, lo, size, v):
+    """Leave the cube [lo, lo + size] (voxel coords, int [P, 3]) along q0 + t dq: the exit
+    t [P] and the integer cell just beyond the exit face(s). Axes the ray does not leave
+    through keep the coordinate of the exit point, clamped to the cube (rounding must not
+    move a ray sideways out of the node it is crossing)."""
+    hi = lo + size
+    plane = jnp.where(dq > 0, hi, lo).astype(jnp.float32)
+    safe = jnp.where(dq == 0, 1.0, dq)
+    t_axis = jnp.where(dq == 0, jnp.inf, (plane - q0) / safe)
+    t_out = jnp.min(t_axis, axis=-1)
+    leaving = t_axis == t_out[:, None]
+    beyond = jnp.where(dq > 0, hi, lo - 1)
+    along = jnp.floor(q0 + t_out[:, None] * dq).astype(jnp.int32)
+    along = jnp.clip(along, lo, hi - 1)
+    nxt = jnp.where(leaving, beyond, jnp.where(jnp.isfinite(t_out)[:, None], along, v))
+    return t_out, nxt
+
+
+# corners (c = 4a + 2b + c) on each face of the unit cell: _FACES[axis, side] -> [8] bool
+_FACES = np.array([[[((c >> (2 - axis)) & 1) == side for c in range(8)] for side in (0, 1)]
+                   for axis in range(3)])
+_ON_FACE = 1e-5  # local-coordinate distance from a face that counts as on it
+
+
+def _iso_face(corners, u, isovalues):
+    """([P] bool, [P] int32): the local point u [P, 3] lies on a face of the cell whose four
+    corners [P, 8] all equal an isovalue (which one: the first)."""
+    equal = corners[:, :, None] == isovalues[None, None, :]                 # [P, 8, K]
+    found = jnp.zeros(corners.shape[:1] + isovalues.shape, bool)
+    for axis in range(3):
+        for side in (0, 1):
+            face = jnp.all(jnp.where(_FACES[axis, side][None, :, None], equal, True), axis=1)
+            near = jnp.abs(u[:, axis] - side) <= _ON_FACE
+            found = found | (face & near[:, None])
+    return jnp.any(found, axis=-1), jnp.argmax(found, axis=-1).astype(jnp.int32)
+
+
+def traverse(hierarchy, isovalues, q0, dq, t_start, t_end, *, method="neubauer",
+             max_steps=None):
+    """First root of the trilinear field = any isovalue along each ray of a packet.
+
+    Args:
+      hierarchy: an object with `shape` (voxels per axis, static), `init(P)` -> extra
+        state, `locate(extra, v, restart)` -> (bits [P] int32, at_cell [P] bool,
+        extra), `cell(extra, v)` -> corners [P, 8] float32, and `ancestor(extra, v,
+        v_next, bits)` -> extra (where to resume locating after a move).
+      isovalues: [K] float32.
+      q0, dq: [P, 3] rays in voxel coordinates.
+      t_start, t_end: [P] the part of each ray to search (already clipped to the cells).
+      method: cell root finder, "neubauer" | "analytic" (`_cell.first_root_multi`).
+      max_steps: iteration bound (default: enough to cross every cell once).
+
+    Returns:
+      t [P] (inf on a miss), hit [P], which [P] int32 (isovalue index, -1 on a miss),
+      cell [P, 3] int32 (min corner of the hit cell), size [P] int32 (its edge in
+      voxels, 1 unless level of detail chose a coarse cell), steps [P] int32.
+    """
+    shape = hierarchy.shape
+    n_cells = jnp.array([max(s - 1, 0) for s in shape], jnp.int32)
+    if max_steps is None:
+        max_steps = 4 * sum(shape) + 64
+    p = q0.shape[0]
+    start = q0 + jnp.maximum(t_start, 0.0)[:, None] * dq
+    start = jnp.where(jnp.isfinite(t_start)[:, None], q0 + t_start[:, None] * dq, start)
+    v0 = jnp.clip(jnp.floor(start).astype(jnp.int32), 0, jnp.maximum(n_cells - 1, 0))
+    live0 = (t_start <= t_end) & jnp.all(n_cells > 0)
+    state = dict(t=jnp.where(live0, t_start, jnp.inf), v=v0, live=live0,
+                 hit=jnp.zeros(p, bool), t_hit=jnp.full(p, jnp.inf, jnp.float32),
+                 which=jnp.full(p, -1, jnp.int32), cell=v0, size=jnp.ones(p, jnp.int32),
+                 steps=jnp.zeros(p, jnp.int32), extra=hierarchy.init(p), it=jnp.int32(0))
+
+    def cond(s):
+        return jnp.any(s["live"]) & (s["it"] < max_steps)
+
+    def body(s):
+        live, v, t = s["live"], s["v"], s["t"]
+        bits, at_cell, extra = hierarchy.locate(s["extra"], v, live)
+        at_cell = at_cell & live
+        size = jnp.left_shift(1, bits)
+        lo = jnp.left_shift(jnp.right_shift(v, bits[:, None]), bits[:, None])
+        t_out, v_next = _exit(q0, dq, lo, size[:, None], v)
+
+        def intersect_cells(_):
+            # the cell is the cube [lo, lo + size]: size > 1 for a coarse (LOD) cell
+            corners = hierarchy.cell(extra, lo, bits)
+            scale = size.astype(jnp.float32)[:, None]
+            s1 = jnp.maximum(jnp.minimum(t_out, t_end) - t, 0.0)
+            p0 = jnp.clip((q0 + t[:, None] * dq - lo.astype(jnp.float32)) / scale, 0.0, 1.0)
+            coeffs = _cell.ray_cubic(corners, p0, dq / scale)
+            s_root, found, which = _cell.first_root_multi(coeffs, isovalues, s1,
+                                                          method=method)
+            # a face whose 4 corners all equal an isovalue carries F = iso exactly, but a
+            # float32 point on it rarely evaluates to exactly iso: where the ray enters or
+            # leaves through such a face (the edge of a plateau of voxels at the isovalue,
+            # common in integer data) the root is the face itself
+            p1 = p0 + (s1 / scale[:, 0])[:, None] * dq / scale
+            at_entry, k_entry = _iso_face(corners, p0, isovalues)
+            at_exit, k_exit = _iso_face(corners, p1, isovalues)
+            s_root = jnp.where(at_entry, 0.0, jnp.where(found, s_root, s1))
+            which = jnp.where(at_entry, k_entry, jnp.where(found, which, k_exit))
+            found = found | at_entry | at_exit
+            # a constant cell has no surface (its level set is all of it or nothing)
+            varying = jnp.max(corners, axis=-1) > jnp.min(corners, axis=-1)
+            found = found & at_cell & varying
+            return jnp.where(found, t + s_root, jnp.inf), found, which
+
+        t_root, found, which = jax.lax.cond(
+            jnp.any(at_cell), intersect_cells,
+            lambda _: (jnp.full(p, jnp.inf, jnp.float32), jnp.zeros(p, bool),
+                       jnp.full(p, -1, jnp.int32)), None)
+        outside = jnp.any((v_next < 0) | (v_next >= n_cells), axis=-1)
+        moving = live & ~found
+        t_new = jnp.where(moving, jnp.maximum(t_out, t), t)
+        still = moving & ~outside & (t_new <= t_end)
+        extra = hierarchy.ancestor(extra, v, v_next, jnp.where(still, bits, 0))
+        return dict(
+            t=t_new, v=jnp.where(still[:, None], v_next, v), live=still,
+            hit=s["hit"] | found, t_hit=jnp.where(found, t_root, s["t_hit"]),
+            which=jnp.where(found, which, s["which"]),
+            cell=jnp.where(found[:, None], lo, s["cell"]),
+            size=jnp.where(found, size, s["size"]),
+            steps=s["steps"] + live.astype(jnp.int32), extra=extra, it=s["it"] + 1)
+
+    out = jax.lax.while_loop(cond, body, state)
+    return (out["t_hit"], out["hit"], out["which"], out["cell"], out["size"],
+            out["steps"])

@@ -1,0 +1,272 @@
+"""VolumeIsosurface against the independent float64 reference (tests/reference_volume64.py),
+the dense macrocell-grid baseline, and the failure cases of structured volumes."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import reference_volume64 as ref
+
+import jaxiso as ji
+from jaxiso.volume import (
+    MacrocellGrid,
+    OctreeVolume,
+    VolumeIsosurface,
+    VolumeSequence,
+    data,
+    lod_for,
+)
+
+W = 20
+SPACING = np.array([0.1, 0.12, 0.09])
+ORIGIN = np.array([-0.3, 0.2, 0.1])
+
+
+def _view(shape, eye_dir=(1.6, 1.1, 0.9), inside=False):
+    """A camera looking at the volume's centre, and its float64 reference rays."""
+    centre = ORIGIN + SPACING * (np.array(shape) - 1) / 2
+    reach = np.max(SPACING * np.array(shape))
+    eye = centre + (0.15 if inside else 1.0) * np.array(eye_dir) * reach
+    cam = ji.Camera.look_at(eye, centre, (0, 0, 1), fov=50 if inside else 40, width=W,
+                            height=W)
+    o, d = ref.camera_rays(eye, centre, (0, 0, 1), 50 if inside else 40, W, W)
+    return cam, o, d
+
+
+_trace = jax.jit(lambda scene, rays: ji.intersect(scene, rays, packet=64))
+
+
+def _compare(arr, iso, volume, *, inside=False, **scene_options):
+    """Hit masks must agree exactly; depths within 1e-4 voxel widths."""
+    cam, o, d = _view(arr.shape, inside=inside)
+    with np.errstate(invalid="ignore"):
+        t_ref, h_ref, w_ref = ref.first_hits(np.asarray(arr, np.float64), o, d, iso,
+                                             spacing=SPACING, origin=ORIGIN)
+    hits = _trace(VolumeIsosurface(volume, iso, **scene_options), cam.rays().reshape((W * W,)))
+    hit, t = np.asarray(hits.hit), np.asarray(hits.t)
+    assert np.array_equal(hit, h_ref), f"{int((hit != h_ref).sum())} pixels differ"
+    err = np.abs(t[hit] - t_ref[hit]) * np.linalg.norm(d[hit], axis=-1) / SPACING.min()
+    assert err.max(initial=0.0) <= 1e-4, err.max()
+    assert np.array_equal(np.asarray(hits.surface)[hit], w_ref[hit])
+    assert np.all(np.isfinite(np.asarray(hits.normal)))
+    return hits, h_ref
+
+
+def _random(shape, seed=0):
+    return np.random.default_rng(seed).uniform(-1, 1, shape).astype(np.float32)
+
+
+def test_octree_matches_reference_marschner_lobb():
+    arr = data.marschner_lobb(17)
+    hits, h_ref = _compare(arr, [0.5], OctreeVolume.from_array(arr, spacing=SPACING,
+                                                                origin=ORIGIN))
+    assert h_ref.sum() > 40
+
+
+@pytest.mark.parametrize("traversal, method", [("neighbor", "analytic"),
+                                               ("restart", "neubauer")])
+def test_octree_matches_reference_two_isovalues(traversal, method):
+    arr = _random((9, 7, 6))
+    vol = OctreeVolume.from_array(arr, spacing=SPACING, origin=ORIGIN)
+    _compare(arr, [0.1, -0.3], vol, traversal=traversal, method=method)
+
+
+def test_grid_baseline_and_octree_agree_on_integer_data_at_voxel_isovalues():
+    # isovalues exactly equal to voxel values (uint8 0..3), and constant regions
+    arr = np.random.default_rng(1).integers(0, 4, (12, 10, 9)).astype(np.uint8)
+    arr[:6, :5] = 2
+    oct_hits, _ = _compare(arr, [2.0, 1.0], OctreeVolume.from_array(arr, spacing=SPACING,
+                                                                     origin=ORIGIN))
+    grid = MacrocellGrid.from_array(arr, spacing=SPACING, origin=ORIGIN, levels=(2,))
+    grid_hits, _ = _compare(arr, [2.0, 1.0], grid)
+    np.testing.assert_allclose(oct_hits.t, grid_hits.t, rtol=1e-6)
+
+
+def test_non_finite_voxels_are_missing_data_and_the_image_is_finite():
+    arr = _random((8, 8, 8), seed=2)
+    arr[3, 4, 2] = np.nan
+    arr[5, 1:4, 6] = np.inf
+    arr[2, 6, 5] = -np.inf
+    vol = OctreeVolume.from_array(arr, spacing=SPACING, origin=ORIGIN)
+    _compare(arr, [0.0], vol)
+    cam, _, _ = _view(arr.shape)
+    img = ji.render(VolumeIsosurface(vol, 0.0), cam, shading=ji.Shading(shadows=True))
+    assert np.all(np.isfinite(img))
+
+
+def test_camera_inside_the_volume():
+    arr = data.sphere_distance((10, 9, 8), radius=0.3)
+    _compare(arr, [0.05], OctreeVolume.from_array(arr, spacing=SPACING, origin=ORIGIN),
+             inside=True)
+
+
+def test_constant_volumes_and_volumes_without_cells_have_no_hits():
+    cam, _, _ = _view((6, 6, 6))
+    rays = cam.rays().reshape((W * W,))
+    for arr, iso in [(np.full((6, 6, 6), 3.0, np.float32), 3.0),
+                     (np.full((6, 6, 6), 3.0, np.float32), 2.0),
+                     (_random((1, 6, 6)), 0.0), (_random((6, 6, 1)), 0.0)]:
+        vol = OctreeVolume.from_array(arr, spacing=SPACING, origin=ORIGIN)
+        hits = ji.intersect(VolumeIsosurface(vol, iso), rays, packet=64)
+        assert not np.any(hits.hit)
+        assert np.all(np.isinf(hits.t))
+
+
+def test_rays_along_cell_faces_and_edges_hit_a_linear_field_exactly():
+    # F = x + 2 y + 3 z is reproduced exactly by trilinear interpolation; orthographic
+    # rays along -x run exactly on grid planes (y or z integer) and grid edges (both).
+    n = 7
+    i, j, k = np.meshgrid(*[np.arange(n, dtype=np.float32)] * 3, indexing="ij")
+    vol = OctreeVolume.from_array(i + 2 * j + 3 * k)
+    yz = np.array([(y, z) for y in (0.0, 1.0, 2.5, 3.0, 6.0) for z in (0.0, 2.0, 4.5, 6.0)],
+                  np.float32)
+    o = np.stack([np.full(len(yz), 20.0, np.float32), yz[:, 0], yz[:, 1]], -1)
+    d = np.tile(np.array([[-1.0, 0.0, 0.0]], np.float32), (len(yz), 1))
+    iso = 9.5
+    hits = ji.intersect(VolumeIsosurface(vol, iso), ji.Rays(jnp.asarray(o), jnp.asarray(d)))
+    x = iso - 2 * yz[:, 0] - 3 * yz[:, 1]
+    expect = (x >= 0) & (x <= n - 1)
+    assert np.array_equal(np.asarray(hits.hit), expect)
+    np.testing.assert_allclose(np.asarray(hits.t)[expect], 20.0 - x[expect], atol=2e-5)
+
+
+def test_bad_input_is_a_clear_error():
+    vol = OctreeVolume.from_array(_random((4, 4, 4)))
+    with pytest.raises(TypeError, match="OctreeVolume"):
+        VolumeIsosurface(np.zeros((4, 4, 4)), 0.0)
+    with pytest.raises(ValueError, match="finite"):
+        VolumeIsosurface(vol, [0.0, np.nan])
+    with pytest.raises(ValueError, match="method"):
+        VolumeIsosurface(vol, 0.0, method="newton")
+    with pytest.raises(ValueError):
+        OctreeVolume.from_array(np.zeros((0, 3, 3)))
+    with pytest.raises(TypeError):
+        OctreeVolume.from_array(np.zeros((3, 3, 3), np.complex64))
+
+
+def test_clip_box_removes_hits_outside():
+    arr = data.sphere_distance((10, 10, 10), radius=0.3)
+    vol = OctreeVolume.from_array(arr, spacing=SPACING, origin=ORIGIN)
+    cam, o, d = _view(arr.shape)
+    # keep x <= the sphere's centre: rays enter through the cut inside the sphere and
+    # hit its far half from within
+    top = ORIGIN + SPACING * np.array([4.5, 9.0, 9.0])
+    rays = cam.rays().reshape((W * W,))
+    clipped = ji.intersect(VolumeIsosurface(vol, 0.0, clip_box=(ORIGIN, top)), rays)
+    full = ji.intersect(VolumeIsosurface(vol, 0.0), rays)
+    p = np.asarray(rays.at(clipped.t))[np.asarray(clipped.hit)]
+    assert np.asarray(clipped.hit).sum() > 10
+    assert np.all(p <= top + 1e-4) and np.all(p >= ORIGIN - 1e-4)
+    # hits inside the box are kept where nothing in front was cut away
+    q = np.asarray(rays.at(full.t))
+    kept = np.asarray(full.hit) & np.all(q <= top - 1e-3, axis=-1)
+    np.testing.assert_allclose(np.asarray(clipped.t)[kept], np.asarray(full.t)[kept], rtol=1e-6)
+
+
+def test_central_difference_normals_are_smooth_and_close_to_trilinear():
+    arr = data.sphere_distance((12, 12, 12), radius=0.3)
+    vol = OctreeVolume.from_array(arr, spacing=SPACING, origin=ORIGIN)
+    cam, _, _ = _view(arr.shape)
+    rays = cam.rays().reshape((W * W,))
+    fwd = ji.intersect(VolumeIsosurface(vol, 0.0), rays)
+    ctr = ji.intersect(VolumeIsosurface(vol, 0.0, normals="central"), rays)
+    hit = np.asarray(fwd.hit)
+    cos = np.sum(np.asarray(fwd.normal) * np.asarray(ctr.normal), -1)[hit]
+    assert cos.min() > 0.9
+    # the field is a sphere distance in unit-cube coordinates w, stretched by the
+    # anisotropic spacing: its exact world gradient is (w - 1/2) / |w - 1/2| / extent
+    extent = SPACING * (np.array(arr.shape) - 1)
+    w = (np.asarray(rays.at(fwd.t))[hit] - ORIGIN) / extent
+    exact = (w - 0.5) / extent
+    exact /= np.linalg.norm(exact, axis=-1, keepdims=True)
+    agree = {name: np.median(np.sum(np.asarray(h.normal)[hit] * exact, -1))
+             for name, h in (("trilinear", fwd), ("central", ctr))}
+    assert agree["central"] > 0.995 and agree["trilinear"] > 0.98, agree
+
+
+def test_hits_are_differentiable_in_isovalue_and_voxel_values():
+    arr = data.sphere_distance((8, 8, 8), radius=0.3).astype(np.float32)
+    vol = OctreeVolume.from_array(arr, spacing=SPACING, origin=ORIGIN)
+    cam, o, d = _view(arr.shape)
+    rays = cam.rays().reshape((W * W,))
+
+    def depth(iso, vol):
+        return ji.intersect(VolumeIsosurface(vol, iso), rays).t
+
+    t0 = depth(0.02, vol)
+    hit = np.asarray(jnp.isfinite(t0))
+    dt_diso = jax.jvp(lambda s: depth(s, vol), (0.02,), (1.0,))[1]
+    h = 1e-3
+    t_ref = [ref.first_hits(arr.astype(np.float64), o, d, [0.02 + s], spacing=SPACING,
+                            origin=ORIGIN)[0] for s in (-h, h)]
+    fd = (t_ref[1] - t_ref[0]) / (2 * h)
+    ok = hit & np.isfinite(fd)
+    np.testing.assert_allclose(np.asarray(dt_diso)[ok], fd[ok], rtol=2e-2, atol=1e-3)
+    # voxel values: raise every voxel by c -> same as lowering the isovalue by c
+    bump = jax.tree_util.tree_map(lambda a: a, vol)
+    tangent = jax.tree_util.tree_map(
+        lambda a: jnp.ones_like(a) if a.dtype == jnp.float32 and a.ndim == 2 else
+        np.zeros(a.shape, jax.dtypes.float0) if not jnp.issubdtype(a.dtype, jnp.floating)
+        else jnp.zeros_like(a), bump)
+    dt_dvox = jax.jvp(lambda v: depth(0.02, v), (vol,), (tangent,))[1]
+    np.testing.assert_allclose(np.asarray(dt_dvox)[hit], -np.asarray(dt_diso)[hit],
+                               rtol=1e-3, atol=1e-5)
+
+
+def test_level_of_detail_matches_full_resolution_when_fine_and_is_close_when_coarse():
+    arr = data.sphere_distance(33, radius=0.3)
+    vol = OctreeVolume.from_array(arr, spacing=1 / 32)
+    cam = ji.Camera.look_at((2.2, 1.6, 1.3), (0.5, 0.5, 0.5), fov=30, width=24, height=24)
+    rays = cam.rays().reshape((24 * 24,))
+    full = _trace(VolumeIsosurface(vol, 0.0), rays)
+    fine = _trace(VolumeIsosurface(vol, 0.0, lod=lod_for(cam, 1e-3)), rays)
+    np.testing.assert_array_equal(full.hit, fine.hit)
+    np.testing.assert_allclose(fine.t, full.t, rtol=1e-6)
+    # dP/dV = 2: coarse cells up to a few voxels wide; coarse voxels sit at their
+    # node's min corner (the seed's layout), which shifts the surface by up to half a
+    # coarse cell
+    for smooth in (True, False):
+        coarse = _trace(VolumeIsosurface(vol, 0.0, lod=lod_for(cam, 2.0, smooth=smooth)),
+                        rays)
+        both = np.asarray(full.hit & coarse.hit)
+        assert both.sum() >= 0.9 * np.asarray(full.hit).sum()
+        dist = np.abs(np.asarray(coarse.t - full.t))[both] * np.linalg.norm(
+            np.asarray(rays.direction)[both], axis=-1) * 32
+        assert np.median(dist) < 2.0 and dist.max() < 8.0, (smooth, dist)
+        assert np.asarray(coarse.steps).mean() < np.asarray(full.steps).mean()
+
+
+def test_sequence_switches_time_step_without_retrace():
+    frames = [data.mixing(12, seed=0, time=t) for t in (0.0, 2.0, 4.0)]
+    seq = VolumeSequence.from_arrays(frames, spacing=1 / 11)
+    assert seq.n_steps == 3 and seq.nbytes <= seq.padded_nbytes
+    assert math.isclose(seq.compression_ratio, seq.raw_nbytes / seq.nbytes)
+    cam = ji.Camera.look_at((2.0, 1.5, 1.6), (0.5, 0.5, 0.5), fov=35, width=16, height=16)
+    rays = cam.rays().reshape((256,))
+    traces = []
+
+    @jax.jit
+    def at_step(seq, step, iso):
+        traces.append(1)
+        return ji.intersect(VolumeIsosurface(seq.at(step), iso), rays).t
+
+    for step, frame in enumerate(frames):
+        for iso in (100.0, 160.0):
+            t = at_step(seq, step, iso)
+            single = ji.intersect(VolumeIsosurface(OctreeVolume.from_array(
+                frame, spacing=1 / 11), iso), rays).t
+            np.testing.assert_array_equal(np.asarray(t), np.asarray(single))
+    assert len(traces) == 1
+
+
+def test_render_multiple_isovalues_transparency_and_no_retrace_on_isovalue_change():
+    arr = data.marschner_lobb(17)
+    vol = OctreeVolume.from_array(arr, spacing=2 / 16, origin=-1)
+    cam = ji.Camera.look_at((2.5, 1.8, 1.5), (0, 0, 0), fov=40, width=16, height=16)
+    shading = ji.Shading(layers=2, opacity=0.5)
+    a = ji.render(VolumeIsosurface(vol, [0.3, 0.6]), cam, shading=shading)
+    b = ji.render(VolumeIsosurface(vol, [0.35, 0.6]), cam, shading=shading)
+    assert np.all(np.isfinite(a)) and not np.array_equal(a, b)
+    assert a.shape == (16, 16, 3)
