@@ -3,6 +3,8 @@
 Layers: inclusion arithmetic (`Interval`, `Affine`, `extend`, `register_rule`), scenes
 (`ImplicitSurface`, CSG), and the render layer (`Camera`, `Rays`, `Hits`, `intersect`,
 `render`, `save_png`). `surfaces` is the catalogue of the seed's test surfaces.
+Structured volumes (`OctreeVolume`, `VolumeIsosurface`, ...) and tetrahedral meshes
+(`TetMesh`, `TetIsosurface`) implement the same scene protocol.
 """
 
 from . import arith
@@ -21,10 +23,13 @@ from .render import (
     save_png,
     to_tiles,
 )
+from .tetra import TetIsosurface, TetMesh, tet_mesh
+from .volume import MacrocellGrid, OctreeVolume, VolumeIsosurface, VolumeSequence, lod_for
 
 __version__ = "0.2.0"
 
 __all__ = ["Interval", "interval", "Affine", "extend", "register_rule", "ia", "aa",
            "arith", "surfaces", "ImplicitSurface", "Camera", "Rays", "Hits", "Image",
            "Light", "Shading", "intersect", "render", "save_png", "to_tiles",
-           "from_tiles", "__version__"]
+           "from_tiles", "OctreeVolume", "VolumeIsosurface", "MacrocellGrid",
+           "VolumeSequence", "lod_for", "TetMesh", "tet_mesh", "TetIsosurface", "__version__"]

@@ -199,7 +199,7 @@ def test_ray_cubic_reproduces_field_along_ray():
 
 
 def test_reference_agrees_with_cubic_roots(random_case):
-    """The sampled/bisected reference and float64 companion roots find the same first root."""
+    """The sampled/bisected reference and numpy.roots of the float64 cubic agree."""
     c = random_case
     a = f64_sigma_cubic(c["corners"], c["p0"], c["dl"], c["s1"])
     a[:, 0] -= c["iso"]
@@ -213,7 +213,10 @@ def test_reference_agrees_with_cubic_roots(random_case):
 
 # ------------------------------------------------------------------ random cells vs ref
 
-@pytest.mark.parametrize("method, bound", [("neubauer", 1e-4), ("analytic", 1e-3)])
+# The brief expected the closed form to need a looser bound in float32; with deflation
+# (see _cell._cubic_real_roots) it meets the same one (100k cells: max 4e-5 for both;
+# textbook Cardano: 89 wrong hit masks, max error 0.8 of the segment).
+@pytest.mark.parametrize("method, bound", [("neubauer", 1e-4), ("analytic", 1e-4)])
 def test_random_cells_match_reference(random_case, method, bound):
     c = random_case
     coeffs = ray_cubic(c["corners"], c["p0"], c["dl"])
@@ -224,7 +227,6 @@ def test_random_cells_match_reference(random_case, method, bound):
     assert mismatched.size == 0, f"{method}: hit masks differ at {mismatched[:10]}"
     both = clear & hit
     error = np.abs(s[both] - c["s_ref"][both]) / c["s1"][both]
-    # measured (2000 cells): max ~2e-5, median ~5e-8 for both methods
     assert error.max() <= bound, f"{method}: max relative error {error.max():.2e}"
     assert np.all(np.isinf(s[~hit])) and np.all((s[hit] >= 0) & (s[hit] <= c["s1"][hit]))
 

@@ -25,7 +25,7 @@ def _images(cell):
     return sum("image/png" in out.get("data", {}) for out in cell.get("outputs", []))
 
 
-@pytest.mark.parametrize("name", ["01_implicits.ipynb"])
+@pytest.mark.parametrize("name", ["01_implicits.ipynb", "02_volumes.ipynb"])
 def test_notebook_runs(name, monkeypatch):
     _require("nbformat", "nbclient", "ipykernel")
     import nbformat

@@ -11,7 +11,9 @@ Along a ray p(s) = p0 + s * dl (local entry point p0, local direction dl = world
 / spacing, s in world t units) each weight is linear in s, so g(s) = F(p(s)) is a cubic
 (`ray_cubic`). `first_root` finds the first s in [0, s1] with g(s) = iso, either
 iteratively after splitting the segment at the extrema of g into monotone pieces
-(Marmitt et al. 2004, the "Neubauer" finder the seed uses) or in closed form (Cardano /
+(Marmitt et al. 2004, the "Neubauer" finder the seed uses; the first bracketing piece is
+refined by bracketed Newton steps rather than Neubauer's repeated linear interpolation,
+which converges too slowly for a fixed step count) or in closed form (Cardano /
 trigonometric as in the Schwarze solver of Parker et al., but taking only the root the
 formulas give accurately and deflating for the other two: textbook Cardano in float32
 misses roots inside the cell whenever the cubic term is small, see `_largest_cubic_root`).

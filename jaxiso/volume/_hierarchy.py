@@ -82,10 +82,14 @@ class OctreeCells:
             bottom = (off < 0) | (d == depth - 2)
             coarse = jnp.zeros_like(active)
             if self.lod is not None:
-                centre = (jnp.right_shift(v, b) * 2 + 1) * jnp.left_shift(1, b) // 2
+                lo = jnp.left_shift(jnp.right_shift(v, b), b)
+                centre = lo + jnp.left_shift(1, b) // 2
                 coarse = self.lod.stops(vol, centre.astype(jnp.float32), b)
-            # a coarse stop is always intersected: the fine [min, max] does not bound
-            # the coarse corners (the seed's looser multiresolution tree, Sec. 4.2.2)
+                # The fine [min, max] does not bound coarse (or blended) corners, which
+                # reach into neighbouring nodes (the seed's looser multiresolution tree,
+                # Sec. 4.2.2): a node where any part could be drawn coarse is not culled
+                # by it; a coarse stop is always intersected (its corners are tested).
+                holds = holds | self.lod.may_be_coarse(vol, lo, b)
             cull = active & ~holds & ~coarse
             cell = active & ~cull & (bottom | coarse)
             bits = jnp.where(cull | (cell & coarse), b, bits)

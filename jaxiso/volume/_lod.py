@@ -69,6 +69,17 @@ class LevelOfDetail:
         (half-diagonal / (distance * ln 2), with distance >= the switch distance)."""
         return jnp.sqrt(3.0) * self.quality * self.slope / (2.0 * jnp.log(2.0)) + 1e-3
 
+    def may_be_coarse(self, vol, lo, b):
+        """[P] bool: some point of the node [lo, lo + 2^b] (voxel coords, int [P, 3]) is
+        drawn with coarse or blended corners: the level at its farthest point from the eye
+        reaches the first blend (fine cells blend towards level 1 from 1 - margin - band)."""
+        eye = (self.eye - vol.origin) / vol.spacing
+        lo_f = lo.astype(jnp.float32)
+        hi_f = lo_f + jnp.left_shift(1, b).astype(jnp.float32)
+        far = jnp.where(jnp.abs(lo_f - eye) > jnp.abs(hi_f - eye), lo_f, hi_f)
+        first = 1.0 - self.margin(vol) - (self.band if self.smooth else 0.0)
+        return self.level(vol, far) >= first
+
     def stops(self, vol, centre, b):
         """[P] bool: the node of 2^b cells centred at voxel-space `centre` [P, 3] is
         intersected as one coarse cell."""

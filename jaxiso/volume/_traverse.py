@@ -131,9 +131,12 @@ def traverse(hierarchy, isovalues, q0, dq, t_start, t_end, *, method="neubauer",
             scale = size.astype(jnp.float32)[:, None]
             s1 = jnp.maximum(jnp.minimum(t_out, t_end) - t, 0.0)
             p0 = jnp.clip((q0 + t[:, None] * dq - lo.astype(jnp.float32)) / scale, 0.0, 1.0)
-            coeffs = _cell.ray_cubic(corners, p0, dq / scale)
-            s_root, found, which = _cell.first_root_multi(coeffs, isovalues, s1,
-                                                          method=method)
+            # relative to the cell's smallest corner: data with a large offset (CT values
+            # ~1000 +- 1) keep their precision in the cubic's coefficients
+            low = jnp.min(corners, axis=-1, keepdims=True)
+            coeffs = _cell.ray_cubic(corners - low, p0, dq / scale)
+            s_root, found, which = _cell.first_root_multi(coeffs, isovalues[None, :] - low,
+                                                          s1, method=method)
             # a face whose 4 corners all equal an isovalue carries F = iso exactly, but a
             # float32 point on it rarely evaluates to exactly iso: where the ray enters or
             # leaves through such a face (the edge of a plateau of voxels at the isovalue,
