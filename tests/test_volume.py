@@ -109,7 +109,7 @@ def test_constant_volumes_and_volumes_without_cells_have_no_hits():
                      (np.full((6, 6, 6), 3.0, np.float32), 2.0),
                      (_random((1, 6, 6)), 0.0), (_random((6, 6, 1)), 0.0)]:
         vol = OctreeVolume.from_array(arr, spacing=SPACING, origin=ORIGIN)
-        hits = ji.intersect(VolumeIsosurface(vol, iso), rays, packet=64)
+        hits = _trace(VolumeIsosurface(vol, iso), rays)
         assert not np.any(hits.hit)
         assert np.all(np.isinf(hits.t))
 

@@ -97,8 +97,9 @@ def render(scene, camera: Camera, *, shading: Shading | None = None,
       camera: a `Camera`.
       shading: a `Shading` (default: opaque Phong, no shadows).
       light: a `Light` (default: directional, over the viewer's right shoulder).
-      tile: packet edge in pixels (packets of tile x tile rays); default: the fastest
-        measured for the backend and arithmetic (`default_tile`). From 2^16 rays on,
+      tile: packet edge in pixels (packets of tile x tile rays); default: the scene's
+        `preferred_tile` if it has one, else the fastest measured for the backend and
+        arithmetic (`default_tile`). From 2^16 rays on,
         CPU t-bisection runs on 4096 persistent lanes instead (faster per frame, slower
         to compile); pass ``lanes=None`` to keep tiles.
       devices: None (default device), a list of devices or a `jax.sharding.Mesh`
@@ -113,7 +114,8 @@ def render(scene, camera: Camera, *, shading: Shading | None = None,
     shading = Shading() if shading is None else shading
     light = Light() if light is None else light
     if tile is None:
-        tile = default_tile(options.get("arithmetic", getattr(scene, "arithmetic", "interval")))
+        tile = getattr(scene, "preferred_tile", None) or default_tile(
+            options.get("arithmetic", getattr(scene, "arithmetic", "interval")))
     tile = int(tile)
     if tile < 1:
         raise ValueError(f"tile must be >= 1, got {tile}")
