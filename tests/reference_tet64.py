@@ -12,7 +12,8 @@ there and no hit is lost to rounding). That interval is intersected with [t_min,
 the clip box; the linear field is evaluated at both ends from the barycentric coordinates and
 the linear equation f(t) = iso solved on it. An end value within `value_tol` (relative to
 the tet's largest |value - iso|) of the isovalue counts as a root there, because "exactly at
-iso" does not survive rounding in the barycentric evaluation. The answer is the nearest root
+iso" does not survive rounding in the barycentric evaluation, nor the slack `tol` (which
+can extrapolate f by ~4 tol times the tet's value spread). The answer is the nearest root
 over all tets and isovalues. Only exact, conservative culling happens first: tets whose value
 range holds no isovalue, and (ray, tet) pairs whose ray line misses the tet's bounding sphere.
 
@@ -21,7 +22,7 @@ Limitations, by design:
     can lie that far outside its tet; `tet` is one of the tets at the hit point (ties between
     tets sharing a face go to the lowest index among the tets kept after culling, i.e. the
     lowest original index);
-  * a tet whose values all equal an isovalue is "all surface": the ray hits where it enters;
+  * a tet with one value throughout has no surface (its level set is all of it or nothing);
   * a ray whose range ends within value_tol of a surface (relative, in value) counts as a hit
     at that end;
   * tets with |6 volume| <= 1e-10 * (longest edge)^3 are skipped;
@@ -136,6 +137,7 @@ def _roots_in_chunk(g, h, centre, radius, vals, o, d, t_lo, t_hi, isovalues, tol
     v = vals[tet]                                                         # [P, 4]
     # f = v0 + sum_i lambda_i (v_i - v0): exact for a constant field, whatever sum(lambda) is
     dv = v[:, 1:] - v[:, :1]
+    constant = np.all(dv == 0, axis=1)
     f0 = v[:, 0] + np.einsum("pi,pi->p", lam0[:, 1:], dv)                 # field at entry
     f1 = v[:, 0] + np.einsum("pi,pi->p", lam1[:, 1:], dv)                 # field at exit
 
@@ -144,7 +146,9 @@ def _roots_in_chunk(g, h, centre, radius, vals, o, d, t_lo, t_hi, isovalues, tol
         slack = value_tol * np.max(np.abs(v - iso), axis=1)
         e0 = np.where(np.abs(f0 - iso) <= slack, 0.0, f0 - iso)
         e1 = np.where(np.abs(f1 - iso) <= slack, 0.0, f1 - iso)
-        crosses = ((e0 <= 0) & (e1 >= 0)) | ((e0 >= 0) & (e1 <= 0))
+        # closed rule: a root where f - iso changes sign or is 0 at an end; a tet with one
+        # value throughout has no surface (its level set is all of it or nothing)
+        crosses = (((e0 <= 0) & (e1 >= 0)) | ((e0 >= 0) & (e1 <= 0))) & ~constant
         with np.errstate(divide="ignore", invalid="ignore"):
             s = np.where(e0 != e1, e0 / (e0 - e1), 0.0)   # equal ends: both 0, root at entry
         t = t0 + np.clip(s, 0.0, 1.0) * (t1 - t0)
@@ -168,7 +172,7 @@ def _roots_in_chunk(g, h, centre, radius, vals, o, d, t_lo, t_hi, isovalues, tol
 
 
 def first_hits(points, tets, values, rays_o, rays_d, isovalues, *, t_min=0.0, t_max=np.inf,
-               clip_box=None, tol=1e-9, value_tol=1e-10):
+               clip_box=None, tol=1e-9, value_tol=5e-8):
     """Nearest ray-isosurface hits of a piecewise-linear field on a tet mesh, float64.
 
     Args:

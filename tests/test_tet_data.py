@@ -217,13 +217,13 @@ def test_reference_no_holes_through_vertices_edges_faces(split):
             o = targets + np.array([-1.25, 0.5, -0.75])
             t, hit, _, _ = first_hits(points, tets, values, o, targets - o, iso)
             assert hit.all()
-            np.testing.assert_allclose(t, 1.0, rtol=1e-12)
+            np.testing.assert_allclose(t, 1.0, rtol=1e-9)
             # axis-parallel rays running along grid lines / inside grid planes
             o = targets - np.array([2.0, 0.0, 0.0])
             t, hit, _, _ = first_hits(points, tets, values, o, np.tile([1.0, 0, 0], (len(o), 1)),
                                       iso)
             assert hit.all()
-            np.testing.assert_allclose(t, 2.0, rtol=1e-12)
+            np.testing.assert_allclose(t, 2.0, rtol=1e-9)
     # a ray lying in the grid plane z = 0.5, diagonal in x-y, crossing vertices and edges
     o = np.array([[-0.5, -0.25, 0.5]])
     t, hit, _, _ = first_hits(points, tets, values, o, np.array([[1.0, 1.0, 0.0]]), 0.5)
@@ -297,18 +297,16 @@ def test_reference_clip_box():
     in_box = np.isfinite(expected) & (x[:, 1] >= 0.3) & (x[:, 1] <= 0.6)
     np.testing.assert_array_equal(hit, in_box)
     assert 10 < hit.sum() < np.isfinite(expected).sum()
-    np.testing.assert_allclose(t[hit], expected[hit], rtol=1e-9)
+    # value_tol (5e-8) may move a root at a range end by ~1e-9 relative
+    np.testing.assert_allclose(t[hit], expected[hit], rtol=1e-8)
 
 
-def test_reference_constant_field_is_all_surface():
-    """Tets whose values all equal the isovalue are hit where the ray enters them."""
+def test_reference_constant_field_at_the_isovalue_has_no_surface():
+    """A tet with one value throughout has no surface, even at the isovalue."""
     points, tets = data.cube_tets(2, split=6)
     o, d = rays_into_unit_cube(np.random.default_rng(6), 50)
-    t, hit, _, _ = first_hits(points, tets, np.full(len(points), 0.5), o, d, 0.5)
-    entry, _ = box_interval(o, d, 0.0, 1.0)
-    assert hit.all()
-    # the reference's barycentric slack (1e-9) lets it enter a tet that much early
-    assert (t <= entry).all() and np.allclose(t, entry, rtol=0, atol=1e-8)
+    _, hit, _, _ = first_hits(points, tets, np.full(len(points), 0.5), o, d, 0.5)
+    assert not hit.any()
 
 
 def sphere_hits(o, d, centre, radius):
