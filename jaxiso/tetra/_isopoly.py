@@ -6,10 +6,19 @@ cuts, in cyclic order. The ray hits the polygon where it crosses the plane insid
 edge's half-space. The seed tests the half-spaces in 2D after projecting onto the plane;
 here each edge's test is the sign of d . ((a - o) x (b - o)), the same half-space seen from
 the ray, because that value is computed from the edge's two points alone: a neighbouring
-tet that shares the polygon edge computes the same number with the opposite sign, so a ray
-through a shared edge is accepted by one of them or (exactly on it) by both, never by
-neither. Edge points are interpolated from the lower global vertex index to the higher, so
-both tets produce bit-identical points.
+tet that shares the polygon edge computes the same number with the opposite sign. Edge
+points are interpolated from the lower global vertex index to the higher, so both tets
+produce bit-identical points.
+
+Those points are rounded to float32, and the side value rounds too, so where the exact
+answer is within rounding of 0 (a ray through a polygon corner, or along a silhouette edge
+where both polygons sharing it lie on one side as seen from the ray) the signs alone can
+reject the ray in every tet around the point. A side within a bound on its rounding
+therefore counts as 0 (the ray touches the edge): a ray through a shared edge is accepted
+by one of the two tets or, near it, by both, never by neither, and a ray more than a few
+float32 roundings outside a polygon is still rejected. Polygons of zero area (the isovalue
+touched at a vertex or along a tet edge) and rays parallel to the polygon's plane up to
+rounding get no hit there: the tets around them hold the surface.
 """
 
 from __future__ import annotations
@@ -49,11 +58,22 @@ def _case_table():
 
 CASE_EDGES, CASE_SIZES = _case_table()
 _EDGE_ENDS = np.array(_TET_EDGES, np.int32)
+# a polygon edge's side value within this much of its rounding scale counts as 0 (errors
+# measured on rays aimed at polygon edges stay below 2^-24 of that scale)
+SIDE_ROUNDING = 2.0**-22
+# a ray's slope through a tet's field within this much of its magnitude bound counts as 0
+SLOPE_ROUNDING = 2.0**-20
 
 
 def tet_gradient(p, f):
     """Gradient [..., 3] of the linear field with values f [..., 4] at vertices p [..., 4, 3]
     (zero for a flat tet)."""
+    return _gradient_and_scale(p, f)[0]
+
+
+def _gradient_and_scale(p, f):
+    """`tet_gradient` [..., 3] and the scale [..., 3] of its rounding: the same sum with
+    absolute values, so that g . d is 0 up to rounding where |g . d| <~ eps |d| . scale."""
     e = p[..., 1:, :] - p[..., :1, :]                                   # [..., 3, 3]
     df = f[..., 1:] - f[..., :1]
     c1 = jnp.cross(e[..., 1, :], e[..., 2, :])
@@ -61,29 +81,42 @@ def tet_gradient(p, f):
     c3 = jnp.cross(e[..., 0, :], e[..., 1, :])
     det = jnp.sum(e[..., 0, :] * c1, axis=-1)
     num = df[..., 0, None] * c1 + df[..., 1, None] * c2 + df[..., 2, None] * c3
-    ok = det != 0
-    return jnp.where(ok[..., None], num / jnp.where(ok, det, 1.0)[..., None], 0.0)
+    num_scale = (jnp.abs(df[..., 0, None] * c1) + jnp.abs(df[..., 1, None] * c2)
+                 + jnp.abs(df[..., 2, None] * c3))
+    ok = (det != 0)[..., None]
+    safe_det = jnp.where(ok, det[..., None], 1.0)
+    return (jnp.where(ok, num / safe_det, 0.0),
+            jnp.where(ok, num_scale / jnp.abs(safe_det), 0.0))
 
 
 def isopolygon_hits(o, d, p, f, ids, iso, snap=0.0):
-    """Ray parameters where rays cross the isosurface `iso` of linear tets.
+    """Ray parameters where rays cross the isosurface `iso` of linear tets, by the closed
+    rule: the level set {F = iso} within each tet, including a face, edge or vertex that
+    touches the isovalue from one side.
+
+    "Above" is value > iso, except in a tet with no vertex above, where it is value >= iso:
+    the > case misses a face at iso whose tet lies below it, the >= case one whose tet lies
+    above, and where vertices lie on both sides the two cases give the same polygon (a
+    vertex at iso is a point of it either way). A tet with one value throughout has none.
 
     Args:
       o, d: [P, 3] rays (broadcast against the tet axis M).
       p: [P, M, 4, 3] tet vertex positions; f: [P, M, 4] vertex values; ids: [P, M, 4]
         global vertex indices (they fix the interpolation direction of shared edges).
       iso: scalar isovalue.
-      snap: vertex values within `snap` of iso count as equal to it (pass one value for
-        the whole mesh, e.g. 2^-20 of its largest |value|: the decision is then made per
-        vertex and neighbours agree). Without it a value a rounding away from iso makes
-        polygon edges shorter than their points' rounding, with sides of random sign.
+      snap: vertex values within `snap` of iso count as equal to it. Pass one value for the
+        whole mesh (e.g. 2^-20 of its largest |value|) so that the decision is per vertex
+        and neighbours agree: without it a value a rounding away from iso makes polygon
+        edges shorter than their points' rounding.
 
     Returns:
       t [P, M] (inf where the ray misses the polygon or the tet has none), and the
-      marching-tets case [P, M] int32.
+      marching-tets case [P, M] int32 (bit i: vertex i above).
     """
     f = jnp.where(jnp.abs(f - iso) <= snap, iso, f)
-    above = (f > iso).astype(jnp.int32)
+    strictly = f > iso
+    above = jnp.where(jnp.any(strictly, axis=-1, keepdims=True), strictly, f >= iso)
+    above = above.astype(jnp.int32)
     case = above[..., 0] + 2 * above[..., 1] + 4 * above[..., 2] + 8 * above[..., 3]
     edges = jnp.asarray(CASE_EDGES)[case]                                # [P, M, 4]
     ends = jnp.asarray(_EDGE_ENDS)[edges]                                # [P, M, 4, 2]
@@ -101,35 +134,76 @@ def isopolygon_hits(o, d, p, f, ids, iso, snap=0.0):
     w = jnp.where(denom != 0, (iso - fa) / jnp.where(denom != 0, denom, 1.0), 0.0)
     # w is exactly 0 or 1 at an end on the isovalue: return that end bit-exactly
     verts = jnp.where((w == 1)[..., None], pb, pa + w[..., None] * (pb - pa))  # [P, M, 4, 3]
-    rel = verts - o[:, None, None, :]
-    # Each polygon edge's side value is computed with its two points in a canonical order
-    # (by the global ids of the tet edges they lie on) and negated if the polygon runs the
-    # other way: a neighbour sharing the edge evaluates the very same expression, so the
-    # two values are exact negatives even where the compiler fuses a * b - c * d into FMAs
-    # (which breaks the antisymmetry of a plain cross product).
-    key_lo = jnp.minimum(ia, ib)
-    key_hi = jnp.maximum(ia, ib)
-    nxt = jnp.roll(rel, -1, axis=-2)
-    nxt_lo, nxt_hi = jnp.roll(key_lo, -1, axis=-1), jnp.roll(key_hi, -1, axis=-1)
-    forward = (key_lo < nxt_lo) | ((key_lo == nxt_lo) & (key_hi <= nxt_hi))
-    first = jnp.where(forward[..., None], rel, nxt)
-    second = jnp.where(forward[..., None], nxt, rel)
-    side = jnp.sum(d[:, None, None, :] * jnp.cross(first, second), axis=-1)   # [P, M, 4]
-    side = jnp.where(forward, side, -side)
-    # a triangle repeats its 3rd vertex: the 4th edge is degenerate and ignored
-    side = jnp.where((jnp.asarray(CASE_SIZES)[case] == 3)[..., None]
-                     & (jnp.arange(4) == 2), 0.0, side)
-    # an edge whose two points coincide (both on edges out of a vertex at the isovalue)
-    # lies on no side: exactly 0, not the rounding left by a fused a * b - c * d
-    same = jnp.all(verts == jnp.roll(verts, -1, axis=-2), axis=-1)
-    side = jnp.where(same, 0.0, side)
-    inside = jnp.all(side >= 0, axis=-1) | jnp.all(side <= 0, axis=-1)
-    # a polygon collapsed to a point (the isovalue at a lone vertex) covers nothing
-    inside = inside & jnp.any(side != 0, axis=-1)
-    has_poly = jnp.asarray(CASE_SIZES)[case] > 0
-    grad = tet_gradient(p, f)
+    # a point's key names what it lies on: its tet edge (global ids, low first), or the
+    # vertex itself when it is an end, which every tet edge out of the vertex then agrees on
+    key_lo = jnp.where(w == 1, jnp.maximum(ia, ib), jnp.minimum(ia, ib))
+    key_hi = jnp.where(w == 0, jnp.minimum(ia, ib), jnp.maximum(ia, ib))
+    side, tolerance = _edge_sides(o, d, verts, key_lo, key_hi,
+                                  jnp.max(jnp.abs(p), axis=(-2, -1)))
+    # a side within rounding of 0 counts as 0: the ray touches that edge
+    inside = jnp.all(side >= -tolerance, axis=-1) | jnp.all(side <= tolerance, axis=-1)
+    # a polygon collapsed to a point or a segment (the isovalue at a vertex or along a tet
+    # edge, the rest on one side) covers nothing: the tets around it hold the surface, if
+    # any, and the side test would accept rays near the segment's whole line
+    distinct = (key_lo != jnp.roll(key_lo, -1, axis=-1)) | (key_hi != jnp.roll(key_hi, -1,
+                                                                                axis=-1))
+    has_poly = jnp.sum(distinct, axis=-1) >= 3
+    grad, grad_scale = _gradient_and_scale(p, f)
     slope = jnp.sum(grad * d[:, None, :], axis=-1)
     f_o = f[..., 0] + jnp.sum(grad * (o[:, None, :] - p[..., 0, :]), axis=-1)
-    ok = inside & has_poly & (slope != 0)
+    # a ray parallel to the plane up to rounding (it lies in it: every side is ~0 too) has
+    # no single crossing; its t would be noise. The tets around take it where it leaves
+    # the plane.
+    parallel = jnp.abs(slope) <= SLOPE_ROUNDING * jnp.sum(
+        jnp.abs(d)[:, None, :] * grad_scale, axis=-1)
+    ok = inside & has_poly & ~parallel
     t = jnp.where(ok, (iso - f_o) / jnp.where(slope != 0, slope, 1.0), jnp.inf)
     return t, case
+
+
+def _edge_sides(o, d, verts, key_lo, key_hi, coord_scale):
+    """Side of the ray o + t d [P, 3] of each polygon edge, from point k to point k + 1.
+
+    Args:
+      verts: [P, M, 4, 3] polygon points in cyclic order (a triangle repeats its 3rd);
+        key_lo, key_hi: [P, M, 4] what each lies on (global ids); coord_scale: [P, M]
+        largest |coordinate| of the tet (the scale of the points' rounding).
+
+    Returns:
+      side [P, M, 4] (one sign inside, exactly 0 on an edge of coinciding points) and
+      tolerance [P, M, 4] >= 0, the bound on its rounding.
+    """
+    # (a - r) . ((b - a) x d), with r the point of the ray nearest a, is computed with the
+    # edge's two points a, b in a canonical order (by key) and negated if the polygon runs
+    # the other way: a neighbour sharing the edge evaluates the very same expression, so
+    # the two values are exact negatives even where the compiler fuses a * b - c * d into
+    # FMAs (which breaks the antisymmetry of a plain cross product). It equals
+    # d . ((a - o) x (b - o)) for any r on the ray, but a - r is short, so it rounds in
+    # proportion to a's distance from the ray, not to its distance from the ray origin
+    # (which along a grazing edge swamps the value).
+    nxt_lo, nxt_hi = jnp.roll(key_lo, -1, axis=-1), jnp.roll(key_hi, -1, axis=-1)
+    forward = ((key_lo < nxt_lo) | ((key_lo == nxt_lo) & (key_hi <= nxt_hi)))[..., None]
+    nxt_verts = jnp.roll(verts, -1, axis=-2)
+    first = jnp.where(forward, verts, nxt_verts)
+    edge = jnp.where(forward, nxt_verts, verts) - first
+    dd = d[:, None, None, :]
+    first_rel = first - o[:, None, None, :]
+    inv_dd = 1.0 / jnp.sum(d * d, axis=-1)[:, None, None, None]
+    offset = first_rel - (jnp.sum(first_rel * dd, axis=-1, keepdims=True) * inv_dd) * dd
+    normal = jnp.cross(edge, dd)                                         # [P, M, 4, 3]
+    side = jnp.sum(offset * normal, axis=-1)
+    side = jnp.where(forward[..., 0], side, -side)
+    # The bound covers the products (on the short offset) and the rounding of the offset
+    # and of the interpolated points, on the scale of a - o and of the tet's coordinates:
+    # a shift s of a changes the side by s . normal. A neighbour may compute the bound
+    # differently: any bound >= 0 on both sides keeps the shared edge closed.
+    abs_normal = jnp.abs(normal)
+    bound = (jnp.sum(jnp.abs(first_rel) * abs_normal, axis=-1)
+             + 4.0 * coord_scale[..., None] * jnp.sum(abs_normal, axis=-1)
+             + _l1(offset) * _l1(edge) * _l1(d)[:, None, None])
+    return side, SIDE_ROUNDING * bound
+
+
+def _l1(v):
+    """[...] sum of |components| of v [..., 3]."""
+    return jnp.sum(jnp.abs(v), axis=-1)

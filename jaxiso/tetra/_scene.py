@@ -36,7 +36,7 @@ class TetIsosurface:
       bvh: the implicit BVH, bounds valid for `time_step` and the mesh's points.
       isovalues: [K] float32; `Hits.surface` says which one was hit.
       time_step: int32 [] (traced: switching steps does not retrace).
-      clip_lo, clip_hi: [3] world-space clip box (default: the mesh's bounds).
+      clip_lo, clip_hi: [3] world-space clip box (default: none, +-inf).
       vertex_gradients: [V, 3] area-weighted field gradients for smooth normals, or None.
       normals: "flat" (the tet's gradient) or "smooth" (vertex gradients interpolated).
     """
@@ -70,13 +70,13 @@ class TetIsosurface:
         iso = jnp.atleast_1d(jnp.asarray(isovalues, jnp.float32))
         if iso.ndim != 1 or iso.size == 0 or not np.all(np.isfinite(np.asarray(iso))):
             raise ValueError(f"isovalues must be a finite scalar or 1-D list, got {isovalues}")
-        pts = np.asarray(mesh.points)
-        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        # no clip box: no clipping at all (a surface on the mesh's own boundary faces must
+        # not be lost to the rounding of a box test against that same face)
+        lo, hi = np.full(3, -np.inf, np.float32), np.full(3, np.inf, np.float32)
         if clip_box is not None:
-            c_lo, c_hi = (np.broadcast_to(np.asarray(c, np.float32), (3,)) for c in clip_box)
-            if np.any(c_lo > c_hi):
-                raise ValueError(f"clip box needs lo <= hi, got {c_lo} and {c_hi}")
-            lo, hi = np.maximum(lo, c_lo), np.minimum(hi, c_hi)
+            lo, hi = (np.broadcast_to(np.asarray(c, np.float32), (3,)) for c in clip_box)
+            if np.any(lo > hi):
+                raise ValueError(f"clip box needs lo <= hi, got {lo} and {hi}")
         values = {"mesh": mesh, "bvh": bvh, "isovalues": iso,
                   "time_step": jnp.int32(step), "clip_lo": jnp.asarray(lo, jnp.float32),
                   "clip_hi": jnp.asarray(hi, jnp.float32), "vertex_gradients": None,
@@ -90,16 +90,17 @@ class TetIsosurface:
     # -- the renderer reads these
     @property
     def lo(self):
-        return self.clip_lo
+        """[3] min corner of the drawn part (mesh bounds within the clip box)."""
+        return jnp.maximum(self.bvh.lo[0, :3], self.clip_lo)
 
     @property
     def hi(self):
-        return self.clip_hi
+        return jnp.minimum(self.bvh.hi[0, :3], self.clip_hi)
 
     @property
     def eps(self):
         """Offset scale for secondary rays: 1e-5 of the scene's diagonal."""
-        return 1e-5 * jnp.linalg.norm(self.clip_hi - self.clip_lo)
+        return 1e-5 * jnp.linalg.norm(self.hi - self.lo)
 
     # -- changes without a rebuild (all jit-able)
     def with_isovalues(self, isovalues) -> TetIsosurface:

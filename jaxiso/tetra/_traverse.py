@@ -18,6 +18,7 @@ from ._isopoly import isopolygon_hits
 
 __all__ = ["traverse"]
 
+BOX_SLACK = 2.0**-20  # relative widening of the ray's [near, far] through a node's box
 SNAP = 2.0**-20  # vertex values this close to an isovalue, relative to max |value|, equal it
 
 
@@ -27,6 +28,10 @@ def _box_enter(o, inv_d, lo, hi, t0, t1):
     tb = (hi - o) * inv_d
     near = jnp.max(jnp.where(jnp.isnan(ta), -jnp.inf, jnp.minimum(ta, tb)), axis=-1)
     far = jnp.min(jnp.where(jnp.isnan(tb), jnp.inf, jnp.maximum(ta, tb)), axis=-1)
+    # widened by a few ulps: a hit on a tet's edge or vertex can lie on the box's face, and
+    # the slab arithmetic must not round it out (the test only culls)
+    near = near - BOX_SLACK * jnp.abs(near)
+    far = far + BOX_SLACK * jnp.abs(far)
     return (jnp.maximum(near, t0) <= jnp.minimum(far, t1))
 
 
