@@ -32,11 +32,6 @@ def _octant(v, bit):
     return 4 * b[:, 0] + 2 * b[:, 1] + b[:, 2]
 
 
-def _highest_bit(x):
-    """Index of the highest set bit of x >= 0 ([P] int32), -1 for 0."""
-    return 31 - jax.lax.clz(x.astype(jnp.int32))
-
-
 @dataclasses.dataclass(frozen=True)
 class OctreeCells:
     """Traversal of an `OctreeVolume` (seed Sec. 3.3.3).
@@ -111,7 +106,7 @@ class OctreeCells:
         if not self.neighbor:
             return extra
         diff = jnp.bitwise_or.reduce(jnp.bitwise_xor(v, v_next), axis=-1)
-        common = self.volume.depth - 1 - _highest_bit(diff)
+        common = self.volume.depth - 1 - _octree._highest_bit(diff.astype(jnp.int32))
         start = jnp.clip(common, 0, max(self.volume.depth - 2, 0))
         return dict(trace=extra["trace"], start=start.astype(jnp.int32))
 
