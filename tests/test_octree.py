@@ -102,18 +102,64 @@ def brute_cell_ranges(field):
     return lo, hi
 
 
-def check_ranges(vol, field):
-    """Every child's stored range equals the brute-force range of its cells."""
+def coarse_value(raw, leaves, q, size):
+    """float64 level-of-detail voxel of width `size` at q: the value of a scalar leaf at
+    least that wide holding q, else the mean of the finite raw voxels of [q, q + size)."""
+    for corner, width, value in leaves:
+        if width >= size and all(a <= b < a + width for a, b in zip(corner, q)):
+            return float(value)
+    block = raw[tuple(slice(a, a + size) for a in q)].astype(np.float64)
+    block = block[~np.isnan(block)]
+    return block.mean() if block.size else np.nan
+
+
+def coarse_points(corner, size, width, shape):
+    """Level points of width `width` in the closed box [corner, corner + size], each axis
+    clamped to the last one holding data (where level-of-detail corners are clamped)."""
+    axes = []
+    for a, n in zip(corner, shape):
+        last = (n - 1) // width * width
+        axes.append(sorted({min(a + m * width, last) for m in range(size // width + 1)}))
+    return [(x, y, z) for x in axes[0] for y in axes[1] for z in axes[2]]
+
+
+def check_ranges(vol, field, raw=None):
+    """Every child's stored range equals the brute-force range of its cells. A multires
+    volume stores the looser tree (seed Sec. 4.2.2): joined with every coarse voxel value
+    (width 2 .. the child's) at the points of the child's closed box."""
     cell_lo, cell_hi = brute_cell_ranges(field)
+    raw = field if raw is None else raw
     children, _ = walk(vol)
     child_min = np.asarray(vol.child_min)
     child_max = np.asarray(vol.child_max)
+    value = np.asarray(vol.child_value)
+    leaves = [(corner, size, value[r, c]) for r, c, corner, size, real in children
+              if not real]
     empty = 0
     for record, c, corner, size, _ in children:
         block = tuple(slice(a, a + size) for a in corner)
         lo, hi = cell_lo[block], cell_hi[block]
         want_lo = lo.min() if lo.size else np.inf
         want_hi = hi.max() if hi.size else -np.inf
+        inside = all(a < n for a, n in zip(corner, field.shape))
+        if vol.multires and min(field.shape) >= 2 and inside:  # flat arrays have no cells
+            seen = [field[q] for q in coarse_points(corner, size, 1, field.shape)]
+            width = 2
+            while width <= size:
+                seen += [coarse_value(raw, leaves, q, width)
+                         for q in coarse_points(corner, size, width, field.shape)]
+                width *= 2
+            seen = np.array(seen, np.float64)
+            seen = seen[np.isfinite(seen)]
+            if seen.size:
+                # coarse means are float64 means rounded to float32, stored rounded outwards
+                lo_c, hi_c = np.float32(seen.min()), np.float32(seen.max())
+                if np.issubdtype(child_min.dtype, np.integer):
+                    lo_c, hi_c = np.floor(lo_c), np.ceil(hi_c)
+                elif child_min.dtype != np.float32:
+                    lo_c = float(child_min.dtype.type(lo_c))
+                    hi_c = float(child_min.dtype.type(hi_c))
+                want_lo, want_hi = min(want_lo, lo_c), max(want_hi, hi_c)
         got_lo, got_hi = child_min[record, c], child_max[record, c]
         if want_lo > want_hi:  # no valid cell: empty, encoded min > max
             empty += 1
@@ -142,6 +188,7 @@ def test_lossless_round_trip_and_ranges(shape, kind):
     assert back.dtype == data.dtype
     np.testing.assert_array_equal(back, data)
     check_ranges(vol, data)
+    check_ranges(OctreeVolume.from_array(data, multires=False), data)
     _, caps = walk(vol)
     padded = np.zeros(tuple(2 * (-(-s // 2)) for s in shape), data.dtype)
     padded[: shape[0], : shape[1], : shape[2]] = data
@@ -303,7 +350,7 @@ def test_lossy_leaves_respect_the_variance_bound():
         np.testing.assert_array_equal(recon[block], value[record, c])
     assert leaves > 0
     np.testing.assert_array_equal(recon[~covered], data[~covered])  # caps are exact
-    check_ranges(vol, recon)  # ranges follow the reconstructed (rendered) field
+    check_ranges(vol, recon, data)  # ranges follow the reconstructed (rendered) field
 
 
 def test_iso_range_clamps_and_keeps_the_range_exact():
@@ -347,9 +394,12 @@ def test_dtypes_bounds_and_geometry():
     assert vol.child_start.dtype == jnp.int32 and vol.child_offset.dtype == jnp.int8
     assert vol.child_value.dtype == jnp.float32
     assert vol.value_range == (float(data.min()), float(data.max()))
-    lo, hi = child_range(vol, 0, 0)
+    lo, hi = child_range(OctreeVolume.from_array(data, multires=False), 0, 0)
     # cells with min corner in [0, 4) reach voxel 4: forward neighbours count too
     assert (float(lo), float(hi)) == (data[:5, :5, :5].min(), data[:5, :5, :5].max())
+    loose = child_range(vol, 0, 0)  # multires: the looser tree (checked in check_ranges)
+    assert data.min() <= float(loose[0]) <= float(lo) and float(hi) <= float(loose[1])
+    assert float(loose[1]) <= data.max()
     jax.tree_util.tree_map(lambda a: a, vol)  # a pytree with static meta
 
 
@@ -418,7 +468,8 @@ def test_non_finite_voxels_mark_missing_cells():
     got = np.asarray(jit_lookup(vol, all_voxels(data.shape)))
     np.testing.assert_array_equal(got, data)  # NaN == NaN here; inf kept
     np.testing.assert_array_equal(vol.to_array(), data)
-    empty = check_ranges(vol, data)
-    assert empty > 0
+    check_ranges(vol, data)
+    tight = OctreeVolume.from_array(data, multires=False)
+    assert check_ranges(tight, data) > 0
     lo, hi = child_range(vol, 0, 0)  # the root child holding the NaN: still finite range
     assert np.isfinite(float(lo)) and np.isfinite(float(hi))

@@ -18,6 +18,11 @@ plus the rounding of that mean to the stored dtype (half a unit for integers). L
 
 Min/max tree: computed from the reconstructed field (leaf values broadcast) per cell from
 its 8 corners (cells with a non-finite corner are invalid), then reduced up the pyramid.
+With `multires` it is the seed's looser multiresolution tree (Sec. 4.2.2, "forward neighbours
+at each depth"): a level-k node's range also covers the coarse voxel values of every level
+j <= k at the level-j points in its closed box [p 2^k, (p + 1) 2^k]. The corners of every
+coarse cell below the node, and the next-level corners they blend towards (`_lod`), are such
+points, so culling by this range stays exact at any level of detail.
 """
 
 from __future__ import annotations
@@ -250,12 +255,52 @@ def _range_pyramid(lo: np.ndarray, hi: np.ndarray, levels: int):
     return los, his
 
 
+def _coarse_value_ranges(values, levels: int):
+    """Lists indexed by k = 0..levels of per-node (min, max) over the values a level of
+    detail can read in a level-k node's closed box [p 2^k, (p + 1) 2^k]: the finite
+    `values[j]` (the level-j voxel grid, j <= k) at the level-j points in that box;
+    +inf / -inf where there are none. A running pyramid: the closed boxes of the level-j
+    points (each point with its forward neighbours), reduced up a level and joined with the
+    next level's points."""
+    los, his = [], []
+    for k in range(levels + 1):
+        v = values[k]
+        lo = _forward_reduce(np.where(np.isfinite(v), v, np.inf).astype(np.float32),
+                             np.minimum, np.inf)
+        hi = _forward_reduce(np.where(np.isfinite(v), v, -np.inf).astype(np.float32),
+                             np.maximum, -np.inf)
+        if k:
+            lo = np.minimum(lo, _reduce_pairs(los[-1], np.minimum, np.inf))
+            hi = np.maximum(hi, _reduce_pairs(his[-1], np.maximum, -np.inf))
+        los.append(lo)
+        his.append(hi)
+    return los, his
+
+
+def _forward_reduce(a: np.ndarray, op, fill) -> np.ndarray:
+    """op over each entry and its forward neighbours (+0/+1 per axis), `fill` past the end."""
+    for axis in range(3):
+        pad = [(0, 0)] * 3
+        pad[axis] = (0, 1)
+        shifted = np.pad(a, pad, constant_values=fill)
+        a = op(a, np.take(shifted, np.arange(1, a.shape[axis] + 1), axis=axis))
+    return a
+
+
 def _as_stored_range(a: np.ndarray, dtype: np.dtype, empty: str) -> np.ndarray:
-    """float32 ranges -> stored dtype; for integers +-inf (empty) -> iinfo.max / iinfo.min."""
+    """float32 range ends -> stored dtype, rounded outwards (coarse means of the looser tree
+    fall between stored values): `empty` = "max" for the min ends (down; empty -> the
+    largest value), "min" for the max ends (up). For integers +-inf -> iinfo.max / .min."""
+    down = empty == "max"
     if dtype.kind in "iu":
         info = np.iinfo(dtype)
-        a = np.where(np.isinf(a), info.max if empty == "max" else info.min, a)
-    return a.astype(dtype)
+        a = np.where(np.isinf(a), info.max if down else info.min,
+                     np.floor(a) if down else np.ceil(a))
+        return a.astype(dtype)
+    stored = a.astype(dtype)
+    inward = stored > a if down else stored < a
+    return np.where(inward, np.nextafter(stored, dtype.type(-np.inf if down else np.inf)),
+                    stored).astype(dtype)
 
 
 # ----------------------------------------------------------------------- the build
@@ -340,6 +385,7 @@ def build_octree(data, *, spacing=1.0, origin=0.0, variance=0.0, iso_range=None,
     leaf = {}
     field_value = np.zeros((1, 1, 1), np.float32)
     covered = np.zeros((1, 1, 1), bool)
+    coarse_values = {}  # level k -> what `lookup_coarse` reads there (NaN: no data)
     for k in range(depth - 1, 0, -1):
         parent_alive = _upsample(alive[k + 1], shapes[k])
         cons = _consolidatable(stats[k], variance)
@@ -350,11 +396,19 @@ def build_octree(data, *, spacing=1.0, origin=0.0, variance=0.0, iso_range=None,
         covered = _upsample(covered, shapes[k])
         field_value = np.where(leaf[k], stats[k]["leaf_value"], field_value)
         covered |= leaf[k]
+        if multires:  # a leaf's value inside it, the node's mean elsewhere
+            value = np.where(covered, field_value, _node_means(stats[k], centre))
+            coarse_values[k] = np.where(stats[k]["count"] > 0, value, np.nan)
     field = np.where(_upsample(covered, n), _upsample(field_value, n), x)
+    coarse_values[0] = field
     report(0.6, "reconstructed field")
 
     cell_lo, cell_hi = _cell_ranges(field)
     range_lo, range_hi = _range_pyramid(cell_lo, cell_hi, depth - 1)
+    if multires and min(n) >= 2:  # a flat array has no cells, coarse or fine
+        loose_lo, loose_hi = _coarse_value_ranges(coarse_values, depth - 1)
+        range_lo = [np.minimum(a, b) for a, b in zip(range_lo, loose_lo)]
+        range_hi = [np.maximum(a, b) for a, b in zip(range_hi, loose_hi)]
     report(0.75, "min/max tree")
 
     records, caps = _assemble(alive, leaf, stats, field, range_lo, range_hi, depth, dtype,

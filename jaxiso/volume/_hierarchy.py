@@ -80,11 +80,10 @@ class OctreeCells:
                 lo = jnp.left_shift(jnp.right_shift(v, b), b)
                 centre = lo + jnp.left_shift(1, b) // 2
                 coarse = self.lod.stops(vol, centre.astype(jnp.float32), b)
-                # The fine [min, max] does not bound coarse (or blended) corners, which
-                # reach into neighbouring nodes (the seed's looser multiresolution tree,
-                # Sec. 4.2.2): a node where any part could be drawn coarse is not culled
-                # by it; a coarse stop is always intersected (its corners are tested).
-                holds = holds | self.lod.may_be_coarse(vol, lo, b)
+                # A multires volume's [min, max] is the looser tree (`_build`): it bounds
+                # every coarse or blended corner of the node's descendants. A coarse stop's
+                # own corners blend with the next level up, beyond that bound, so it is
+                # never culled: the cell test itself rejects it.
             cull = active & ~holds & ~coarse
             cell = active & ~cull & (bottom | coarse)
             bits = jnp.where(cull | (cell & coarse), b, bits)

@@ -69,17 +69,6 @@ class LevelOfDetail:
         (half-diagonal / (distance * ln 2), with distance >= the switch distance)."""
         return jnp.sqrt(3.0) * self.quality * self.slope / (2.0 * jnp.log(2.0)) + 1e-3
 
-    def may_be_coarse(self, vol, lo, b):
-        """[P] bool: some point of the node [lo, lo + 2^b] (voxel coords, int [P, 3]) is
-        drawn with coarse or blended corners: the level at its farthest point from the eye
-        reaches the first blend (fine cells blend towards level 1 from 1 - margin - band)."""
-        eye = (self.eye - vol.origin) / vol.spacing
-        lo_f = lo.astype(jnp.float32)
-        hi_f = lo_f + jnp.left_shift(1, b).astype(jnp.float32)
-        far = jnp.where(jnp.abs(lo_f - eye) > jnp.abs(hi_f - eye), lo_f, hi_f)
-        first = 1.0 - self.margin(vol) - (self.band if self.smooth else 0.0)
-        return self.level(vol, far) >= first
-
     def stops(self, vol, centre, b):
         """[P] bool: the node of 2^b cells centred at voxel-space `centre` [P, 3] is
         intersected as one coarse cell."""
@@ -94,14 +83,20 @@ class LevelOfDetail:
         size = jnp.left_shift(1, bits)
         pos = lo[:, None, :] + _CORNERS[None] * size[:, None, None]        # [P, 8, 3]
         up = bits + 1
-        lo_up = jnp.left_shift(jnp.right_shift(lo, up[:, None]), up[:, None])
-        coarse_corners = _level_corners(vol, lo_up, up)                       # [P, 8]
-        u = (pos - lo_up[:, None, :]).astype(jnp.float32) / (2.0 * size)[:, None, None]
-        coarse = _trilinear_many(coarse_corners, u)                          # [P, 8]
         lam = self.level(vol, pos.astype(jnp.float32))
         start = up[:, None] - self.margin(vol) - self.band
         beta = jnp.clip((lam - start) / self.band, 0.0, 1.0)
-        return fine + beta * (coarse - fine)
+
+        def coarse(_):
+            lo_up = jnp.left_shift(jnp.right_shift(lo, up[:, None]), up[:, None])
+            coarse_corners = _level_corners(vol, lo_up, up)                   # [P, 8]
+            u = (pos - lo_up[:, None, :]).astype(jnp.float32) / (2.0 * size)[:, None, None]
+            return _trilinear_many(coarse_corners, u)                        # [P, 8]
+
+        # most cells of a packet lie away from every transition band: skip the second
+        # lookup of 8 voxels then
+        return fine + beta * (jax.lax.cond(jnp.any(beta > 0), coarse, lambda _: fine, None)
+                              - fine)
 
 
 def _level_corners(vol, lo, bits):

@@ -17,6 +17,9 @@ bit D-d-1 of the voxel's x coordinate for a child of a depth-d node.
 - `child_min` / `child_max`: range of the field over the valid cells whose min corner lies in
   the child; an empty range (no valid cell) is min > max. A cell is valid when its 8 corners
   are inside the data and finite, so NaN/inf voxels mark missing data that is never hit.
+  A `multires` volume stores the looser tree (seed Sec. 4.2.2): joined with the coarse voxel
+  values at every level point of the child's closed box, which bounds every level-of-detail
+  corner below it (`_build`).
 
 The lookups take int32 coordinates of any batch shape [..., 3], unroll the static depth and
 return float32 (they are jitted, so eager calls compile once per volume structure);
@@ -115,7 +118,8 @@ class OctreeVolume:
 
     @property
     def value_range(self) -> tuple[float, float]:
-        """(min, max) of the field over all valid cells; (inf, -inf) when there is none."""
+        """(min, max) of the field over all valid cells (multires: over all finite voxels,
+        the looser tree's root range); (inf, -inf) when there is no cell."""
         lo = np.asarray(self.child_min[0], np.float64)
         hi = np.asarray(self.child_max[0], np.float64)
         if not np.any(lo <= hi):
