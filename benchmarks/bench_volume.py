@@ -5,8 +5,9 @@ accuracy against a float64 reference.
     python benchmarks/bench_volume.py [--size 512] [--volume 256] [--quick] [--repeats 3]
         [--only table31,table32,packets,lod,peers,accuracy] [--out benchmarks/results]
 
-Ray casts run ``jax.jit(ji.intersect)`` on camera rays in tile order (packets of
-tile x tile rays, the render path); the peers' jaxiso images ``jax.jit(ji.render)``.
+Ray casts run ``jax.jit(ji.intersect)`` on the whole image as one queue on 4096
+persistent lanes with refill (what render does from 2^16 rays), except the packets
+section (tile x tile packets in tile order); the peers' jaxiso images ``jax.jit(ji.render)``.
 Compile time (AOT
 ``lower().compile()``) is reported apart from run time: one warm-up call, then the
 median of `repeats` calls, each ``jax.block_until_ready``; an entry whose warm-up call
@@ -23,7 +24,8 @@ Sections:
             build seconds; the reconstruction error (to_array vs the clamped input).
   table32   octree (restart / neighbour traversal) vs the dense macrocell grid (seed
             Table 3.2) on the mixing layer at isovalue 127.5, far and close cameras.
-  packets   tile sizes 2..32 (seed Table 4.2), octree restart, far camera.
+  packets   tile sizes 2..32 (seed Table 4.2) and the persistent lanes, octree restart,
+            far camera.
   lod       dP/dV quality 1, 2, 4, smooth and not, vs full resolution (seed Fig. 4.12 /
             4.15): Mrays/s, hit-mask differences and pinholes, colour differences of
             the hits shaded white on black, depth differences; the difference images
@@ -57,7 +59,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxiso as ji
-from jaxiso.render._scene import default_tile
+from jaxiso.render._render import LANES
 from jaxiso.volume import MacrocellGrid, OctreeVolume, VolumeIsosurface, VolumeSequence, lod_for
 from jaxiso.volume import data as vdata
 
@@ -66,7 +68,8 @@ sys.path.insert(0, str(ROOT.parent / "tests"))
 import reference_volume64 as ref  # noqa: E402
 
 SECTIONS = ("table31", "table32", "packets", "lod", "peers", "accuracy")
-RENDER_TILE = default_tile("interval")  # the packet edge render uses for volumes
+RENDER_TILE = VolumeIsosurface.preferred_tile  # the packet edge render uses for volumes
+RENDER_LANES = LANES  # render's persistent lanes (images of 2^16 rays and more)
 MIXING_TIME = 1.0
 MIXING_ISO = vdata.ISOVALUES["mixing"]  # 127.5, the middle of the mixing layer
 PEER_NEW_ISO = 96.0  # the isovalue the peers section changes to
@@ -239,23 +242,36 @@ class Bench:
             times.append(_now() - t0)
         return out, (statistics.median(times) if times else warm), warm, len(times)
 
-    def trace(self, scene, cam, tile=RENDER_TILE, timed=True):
-        """jit(intersect) of a camera's rays: (row, hit [H, W], t [H, W], normal [H, W, 3])."""
-        rays = tiled(cam, tile)
-        packet = tile * tile
-        exe, compile_s, cached = self.compiled(
-            ("intersect", tile), lambda s, r: ji.intersect(s, r, packet=packet), scene, rays)
-        hits, run_s, warm_s, used = self.timed(lambda: exe(scene, rays), timed)
+    def trace(self, scene, cam, tile=None, timed=True):
+        """jit(intersect) of a camera's rays in tile x tile packets, or (tile None) the
+        whole image on RENDER_LANES persistent lanes as render does for large images:
+        (row, hit [H, W], t [H, W], normal [H, W, 3])."""
         h, w = cam.height, cam.width
-        steps = np.asarray(hits.steps, np.int64)
-        hit = np.asarray(ji.from_tiles(hits.hit, tile, h, w))
         n = h * w
-        row = dict(tile=tile, packet=packet, pixels=n, compile_s=compile_s,
-                   compile_cached=cached, run_s=run_s, warmup_s=warm_s, repeats_used=used,
-                   mrays_per_s=n / run_s / 1e6, hit_fraction=float(hit.mean()),
-                   **work(steps, packet, run_s))
-        t = np.asarray(ji.from_tiles(hits.t, tile, h, w), np.float64)
-        return row, hit, t, np.asarray(ji.from_tiles(hits.normal, tile, h, w))
+        if tile is None:
+            rays, packet, opts = cam.rays().reshape((n,)), n, dict(lanes=RENDER_LANES)
+        else:
+            rays, packet, opts = tiled(cam, tile), tile * tile, {}
+        exe, compile_s, cached = self.compiled(
+            ("intersect", tile), lambda s, r: ji.intersect(s, r, packet=packet, **opts),
+            scene, rays)
+        hits, run_s, warm_s, used = self.timed(lambda: exe(scene, rays), timed)
+
+        def image(a):
+            if tile is None:
+                return np.asarray(a).reshape((h, w) + a.shape[1:])
+            return np.asarray(ji.from_tiles(a, tile, h, w))
+
+        steps = np.asarray(hits.steps, np.int64)
+        hit = image(hits.hit)
+        counters = work(steps, packet, run_s)
+        if tile is None:  # lanes refill: a packet's slowest ray does not hold the others
+            counters["lane_utilisation"] = None
+        row = dict(tile=tile, lanes=None if tile else RENDER_LANES, packet=packet, pixels=n,
+                   compile_s=compile_s, compile_cached=cached, run_s=run_s,
+                   warmup_s=warm_s, repeats_used=used, mrays_per_s=n / run_s / 1e6,
+                   hit_fraction=float(hit.mean()), **counters)
+        return row, hit, image(hits.t).astype(np.float64), image(hits.normal)
 
 
 def _now():
@@ -444,7 +460,7 @@ def table32(b, cfg):
     grid = MacrocellGrid.from_array(a, spacing=sp, origin=org, levels=(5, 3))
     grid_build_s = _now() - t0
     print(f"== Table 3.2 analog: mixing {n}^3 float32, isovalue {MIXING_ISO}, {size}x{size}, "
-          f"tiles {RENDER_TILE}x{RENDER_TILE}; octree {mb(vol.nbytes)}, macrocell grid "
+          f"{RENDER_LANES} persistent lanes; octree {mb(vol.nbytes)}, macrocell grid "
           f"(levels 2^5, 2^3, over the dense array) {mb(grid.nbytes)}")
     configs = [c for c in (("octree", "restart", vol), ("octree", "neighbor", vol),
                            ("grid", "-", grid)) if c[0] in cfg["structures"]
@@ -475,7 +491,7 @@ def table32(b, cfg):
           "from octree restart)")
     print(f"  seed Table 3.2 (fps, RM t=270, 16 cores): grid / octree over the 3D array "
           f"{SEED_TABLE32['3D array']}, over octree data {SEED_TABLE32['octree volume']}\n")
-    return dict(volume=n, size=size, isovalue=MIXING_ISO, tile=RENDER_TILE,
+    return dict(volume=n, size=size, isovalue=MIXING_ISO, lanes=RENDER_LANES,
                 octree_build_s=build_s, grid_build_s=grid_build_s, grid_levels=[5, 3],
                 rows=rows, seed_table32=SEED_TABLE32)
 
@@ -491,9 +507,10 @@ def packets(b, cfg):
     print(f"== Packets (Table 4.2 analog): mixing {n}^3, octree restart, far camera, "
           f"{size}x{size}")
     rows, printed = [], []
-    for tile in cfg["tiles"]:
+    for tile in cfg["tiles"] + [None]:
         row, _, _, _ = b.trace(scene, cam, tile=tile)
-        row.update(label=f"{tile}x{tile}", volume=n, size=size)
+        label = f"{tile}x{tile}" if tile else f"{RENDER_LANES} lanes"
+        row.update(label=label, volume=n, size=size)
         rows.append(row)
         printed.append([row["label"], compile_cell(row), fmt(row["run_s"]),
                         fmt(row["mrays_per_s"]), fmt(row["steps_mean"], ".1f"),
@@ -954,7 +971,7 @@ def charts(result, out_dir, backend):
         fig, ax = plt.subplots(figsize=(6, 3.5))
         ax.bar([r["label"] for r in rows], [r["mrays_per_s"] for r in rows])
         ax.set_ylabel("Mrays/s")
-        ax.set_xlabel("packet (tile)")
+        ax.set_xlabel("packet (tile) or persistent lanes")
         ax.set_title(f"octree restart, mixing {result['packets']['volume']}^3, "
                      f"{result['packets']['size']}^2")
         save(fig, "packets")

@@ -36,15 +36,18 @@ def _view(shape, eye_dir=(1.6, 1.1, 0.9), inside=False):
 
 
 _trace = jax.jit(lambda scene, rays: ji.intersect(scene, rays, packet=64))
+# the whole image as one queue on 64 persistent lanes, then 32 for the tail
+_trace_lanes = jax.jit(lambda scene, rays: ji.intersect(scene, rays, packet=W * W, lanes=64))
 
 
-def _compare(arr, iso, volume, *, inside=False, **scene_options):
+def _compare(arr, iso, volume, *, inside=False, lanes=False, **scene_options):
     """Hit masks must agree exactly; depths within 1e-4 voxel widths."""
     cam, o, d = _view(arr.shape, inside=inside)
     with np.errstate(invalid="ignore"):
         t_ref, h_ref, w_ref = ref.first_hits(np.asarray(arr, np.float64), o, d, iso,
                                              spacing=SPACING, origin=ORIGIN)
-    hits = _trace(VolumeIsosurface(volume, iso, **scene_options), cam.rays().reshape((W * W,)))
+    trace = _trace_lanes if lanes else _trace
+    hits = trace(VolumeIsosurface(volume, iso, **scene_options), cam.rays().reshape((W * W,)))
     hit, t = np.asarray(hits.hit), np.asarray(hits.t)
     assert np.array_equal(hit, h_ref), f"{int((hit != h_ref).sum())} pixels differ"
     err = np.abs(t[hit] - t_ref[hit]) * np.linalg.norm(d[hit], axis=-1) / SPACING.min()
@@ -65,12 +68,13 @@ def test_octree_matches_reference_marschner_lobb():
     assert h_ref.sum() > 40
 
 
-@pytest.mark.parametrize("traversal, method", [("neighbor", "analytic"),
-                                               ("restart", "neubauer")])
-def test_octree_matches_reference_two_isovalues(traversal, method):
+@pytest.mark.parametrize("traversal, method, lanes", [("neighbor", "analytic", False),
+                                                      ("restart", "neubauer", False),
+                                                      ("neighbor", "neubauer", True)])
+def test_octree_matches_reference_two_isovalues(traversal, method, lanes):
     arr = _random((9, 7, 6))
     vol = OctreeVolume.from_array(arr, spacing=SPACING, origin=ORIGIN)
-    _compare(arr, [0.1, -0.3], vol, traversal=traversal, method=method)
+    _compare(arr, [0.1, -0.3], vol, traversal=traversal, method=method, lanes=lanes)
 
 
 def test_grid_baseline_and_octree_agree_on_integer_data_at_voxel_isovalues():

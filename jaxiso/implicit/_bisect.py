@@ -22,6 +22,8 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from .._lanes import run_lanes
+
 MAX_DEPTH = 30  # int32 positions stay exact
 
 
@@ -176,60 +178,26 @@ def k_bisect(test, k_enter, k_exit, d_max, active, max_steps: int) -> Result:
 
 
 def t_bisect_lanes(test, p, D, d_max, active, lanes: int, max_steps: int) -> Result:
-    """t-bisection of a batch of rays [N] on `lanes` persistent lanes with refill.
-
-    A batched while_loop runs until its slowest lane is done; here a lane that finishes
-    its ray writes the result and takes the next ray from the queue (rays that miss the
-    domain never enter it), so every iteration evaluates `lanes` useful boxes while the
-    queue lasts. When it runs dry and few lanes are still busy, their rays move, with
-    their (k, d) state, to a narrower loop (lanes / 8, down to 32), so the slow tail does
-    not pay for idle lanes. Same per-ray algorithm and results as `t_bisect`.
+    """t-bisection of a batch of rays [N] on `lanes` persistent lanes with refill
+    (`jaxiso._lanes`; rays that miss the domain never enter the queue). Same per-ray
+    algorithm and results as `t_bisect`. Refilling every 4 steps was best: measured on the
+    2-core CPU (Barth sextic, IA, 512^2, 4096 lanes) every 1 -> 0.42, 2 -> 0.68,
+    4 -> 0.82, 8 -> 0.80 Mrays/s with identical hits (benchmarks/NOTES.md).
 
     Args:
       test: ``test(p, D, s0, s1) -> BoxTest`` vectorised over lanes ([L] / [L, 3]).
       p, D: [N, 3] ray segment start and vector; d_max: [N] int32; active: [N] bool.
-      lanes: static number of lanes L of the first phase.
+      lanes: static number of lanes of the first phase.
       max_steps: static bound on iterations per ray.
     """
     n = p.shape[0]
-    widths = [max(1, min(int(lanes), n))]
-    while widths[-1] > 32:
-        widths.append(max(32, widths[-1] // 8))
-    queue = dict(idx=jnp.argsort(~active, stable=True).astype(jnp.int32),
-                 k=jnp.zeros(n, jnp.int32), d=jnp.zeros(n, jnp.int32),
-                 steps=jnp.zeros(n, jnp.int32))
-    n_queue = jnp.sum(active).astype(jnp.int32)
-    out = (jnp.full(n, jnp.inf, jnp.float32), jnp.zeros(n, bool), jnp.zeros(n, jnp.int32))
-    for i, width in enumerate(widths):
-        last = i == len(widths) - 1
-        stop_live = 0 if last else widths[i + 1]
-        out, queue, n_queue = _lanes_phase(test, p, D, d_max, queue, n_queue, out, width,
-                                           stop_live, max_steps)
-    return Result(*out)
+    order = jnp.argsort(~active, stable=True).astype(jnp.int32)
+    zeros = jnp.zeros(n, jnp.int32)
+    queue = dict(idx=order, p=p[order], D=D[order], dmax=d_max[order], k=zeros, d=zeros,
+                 steps=zeros, done=jnp.zeros(n, bool), hit=jnp.zeros(n, bool))
 
-
-def _lanes_phase(test, p, D, d_max, queue, n_queue, out, width: int, stop_live: int,
-                 max_steps: int, refill_every: int = 4):
-    """Run queued rays (with their bisection state) on `width` lanes until the queue is
-    empty and at most `stop_live` lanes are busy; return the busy lanes as a queue.
-
-    Lanes step `refill_every` times between refills (a lane that finishes early idles):
-    measured on the 2-core CPU (Barth sextic, IA, 512^2, 4096 lanes) 1 -> 0.42, 2 -> 0.68,
-    4 -> 0.82, 8 -> 0.80 Mrays/s with identical hits (benchmarks/NOTES.md)."""
-    n = p.shape[0]
-    q_len = queue["idx"].shape[0]
-
-    def load(slot):
-        live = slot < n_queue
-        j = jnp.minimum(slot, q_len - 1)
-        idx = queue["idx"][j]
-        return dict(idx=idx, live=live, p=p[idx], D=D[idx], dmax=d_max[idx],
-                    k=queue["k"][j], d=queue["d"][j], steps=queue["steps"][j],
-                    done=jnp.zeros_like(live), hit=jnp.zeros_like(live))
-
-    def step(_, ln):
+    def step(ln):
         k, d = ln["k"], ln["d"]
-        busy = ln["live"] & ~ln["done"]
         w = piece_width(d)
         r = test(ln["p"], ln["D"], k.astype(jnp.float32) * w, (k + 1).astype(jnp.float32) * w)
         accept = r.possible & r.finite & ((d >= ln["dmax"]) | r.small)
@@ -240,38 +208,17 @@ def _lanes_phase(test, p, D, d_max, queue, n_queue, out, width: int, stop_live: 
         steps = ln["steps"] + 1
         done = accept | (~descend & (d_next == 0)) | (steps >= max_steps)
         # an accepted ray keeps (k, d) of its hit piece
-        k_new = jnp.where(accept, k, jnp.where(descend, 2 * k, k_next))
-        d_new = jnp.where(accept, d, jnp.where(descend, d + 1, d_next))
-        return dict(ln, k=jnp.where(busy, k_new, k), d=jnp.where(busy, d_new, d),
-                    steps=jnp.where(busy, steps, ln["steps"]),
-                    done=ln["done"] | (busy & done), hit=ln["hit"] | (busy & accept))
+        return dict(ln, k=jnp.where(accept, k, jnp.where(descend, 2 * k, k_next)),
+                    d=jnp.where(accept, d, jnp.where(descend, d + 1, d_next)),
+                    steps=steps, done=done, hit=accept)
 
-    def cond(st):
-        nxt, ln, _ = st
-        return (nxt < n_queue) | (jnp.sum(ln["live"] & ~ln["done"]) > stop_live)
-
-    def body(st):
-        nxt, ln, (s_out, hit_out, steps_out) = st
-        ln = lax.fori_loop(0, refill_every, step, ln)
-        finished = ln["live"] & ln["done"]
-        # finished rays write their result (the others scatter out of bounds: dropped)
-        target = jnp.where(finished, ln["idx"], n)
+    def write(out, ln, target):
         w = piece_width(ln["d"])
         s_hit = jnp.where(ln["hit"], (ln["k"].astype(jnp.float32) + 0.5) * w, jnp.inf)
-        s_out = s_out.at[target].set(s_hit, mode="drop")
-        hit_out = hit_out.at[target].set(ln["hit"], mode="drop")
-        steps_out = steps_out.at[target].set(ln["steps"], mode="drop")
-        # refill finished lanes from the queue, in lane order
-        fresh = load(nxt + jnp.cumsum(finished.astype(jnp.int32)) - 1)
-        ln = jax.tree_util.tree_map(
-            lambda new, old: jnp.where(finished.reshape((-1,) + (1,) * (old.ndim - 1)),
-                                       new, old), fresh, ln)
-        return nxt + jnp.sum(finished).astype(jnp.int32), ln, (s_out, hit_out, steps_out)
+        return Result(out.s.at[target].set(s_hit, mode="drop"),
+                      out.hit.at[target].set(ln["hit"], mode="drop"),
+                      out.steps.at[target].set(ln["steps"], mode="drop"))
 
-    state = (jnp.int32(width), load(jnp.arange(width, dtype=jnp.int32)), out)
-    _, ln, out = lax.while_loop(cond, body, state)
-    busy = ln["live"] & ~ln["done"]
-    order = jnp.argsort(~busy, stable=True)
-    rest = dict(idx=ln["idx"][order], k=ln["k"][order], d=ln["d"][order],
-                steps=ln["steps"][order])
-    return out, rest, jnp.sum(busy).astype(jnp.int32)
+    out = Result(jnp.full(n, jnp.inf, jnp.float32), jnp.zeros(n, bool), zeros)
+    return run_lanes(step, lambda ln: ln["done"], queue, jnp.sum(active).astype(jnp.int32),
+                     out, write, lanes=lanes)

@@ -85,8 +85,10 @@ class ImplicitSurface:
     def has_params(self) -> bool:
         return len(jax.tree_util.tree_leaves(self.params)) > 0
 
-    # render: persistent lanes pay off for large images (see jaxiso/render/_render.py)
-    prefers_lanes = True
+    def prefers_lanes(self, method) -> bool:
+        """render: persistent lanes pay off for t-bisection of large images (measured in
+        jaxiso/render/_render.py)."""
+        return method == "t-bisection"
 
     @property
     def field(self):

@@ -159,8 +159,9 @@ _LANES_FROM = 2**16
 
 
 def _use_lanes(scene, method, n_rays: int) -> bool:
-    return (getattr(scene, "prefers_lanes", False) and method == "t-bisection"
-            and n_rays >= _LANES_FROM and jax.default_backend() == "cpu")
+    prefers = getattr(scene, "prefers_lanes", None)
+    return (prefers is not None and prefers(method) and n_rays >= _LANES_FROM
+            and jax.default_backend() == "cpu")
 
 
 @functools.partial(jax.jit, static_argnums=(4, 5, 6, 7))

@@ -50,7 +50,7 @@ class TetIsosurface:
     vertex_gradients: jax.Array | None
     normals: str = "flat"
 
-    prefers_lanes = False
+    prefers_lanes = None  # render keeps tiles
 
     def __init__(self, mesh, isovalues, *, bvh="bih", leaf_size=8, clip_box=None,
                  time_step=0, normals="flat"):

@@ -58,7 +58,9 @@ class VolumeIsosurface:
     normals: str = "trilinear"
     lod: object = None
 
-    prefers_lanes = False
+    def prefers_lanes(self, method) -> bool:
+        """render: persistent lanes for large images (measured in benchmarks/NOTES.md)."""
+        return True
     # render's default tile: 8x8 was fastest in the packet table of bench_volume.py
     # (256^3 mixing layer, 256^2: 2x2 0.005, 4x4 0.008, 8x8 0.014, 16x16 0.012 Mrays/s)
     preferred_tile = 8
@@ -117,12 +119,14 @@ class VolumeIsosurface:
         return _replace(self, lod=lod)
 
     def intersect_packet(self, rays, t_min, t_max, *, method=None, traversal=None,
-                         normals=None, max_steps=None, eps=None) -> Hits:
+                         normals=None, max_steps=None, eps=None, lanes=None) -> Hits:
         """First hits of one packet of rays [P] (see `jaxiso.intersect`).
 
         Options: method, traversal, normals (defaults from the scene); max_steps:
         iteration bound. `eps` is the renderer's precision knob: shadow rays come with a
-        coarser eps, which scales the level-of-detail ratio (no effect without `lod`)."""
+        coarser eps, which scales the level-of-detail ratio (no effect without `lod`).
+        lanes: run the packet on this many persistent lanes with refill (for a packet of
+        a whole image; same hits)."""
         method = self.method if method is None else method
         traversal = self.traversal if traversal is None else traversal
         normals = self.normals if normals is None else normals
@@ -146,7 +150,7 @@ class VolumeIsosurface:
             cells = OctreeCells(vol, self.isovalues, traversal == "neighbor", lod)
         t_raw, hit, which, cell, size, steps = traverse(
             cells, self.isovalues, q0, dq, t_start, t_end, method=method,
-            max_steps=max_steps)
+            max_steps=max_steps, lanes=lanes)
         safe_t = jnp.where(hit, t_raw, 0.0)
         if lod is None:
             level = self.isovalues[jnp.maximum(which, 0)]

@@ -1,6 +1,7 @@
 """Stackless ray traversal of a min/max hierarchy over voxel cells (seed Sec. 3.3.3, 4.4).
 
-One `lax.while_loop` over a packet of rays [P]. Each iteration, every active ray
+One `lax.while_loop` over a packet of rays [P] (or persistent lanes with refill over a
+whole image, `jaxiso._lanes`). Each iteration, every active ray
   1. locates the current voxel cell `v` in the hierarchy, going down until a node whose
      [min, max] holds no isovalue (culled) or a cell to intersect (`Hierarchy.locate`);
   2. if it reached a cell, intersects the trilinear patch exactly (`_cell`), under a
@@ -20,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._lanes import run_lanes
 from . import _cell
 
 __all__ = ["slab", "traverse", "voxel_ray"]
@@ -81,7 +83,7 @@ def _iso_face(corners, u, isovalues):
 
 
 def traverse(hierarchy, isovalues, q0, dq, t_start, t_end, *, method="neubauer",
-             max_steps=None):
+             max_steps=None, lanes=None):
     """First root of the trilinear field = any isovalue along each ray of a packet.
 
     Args:
@@ -93,7 +95,10 @@ def traverse(hierarchy, isovalues, q0, dq, t_start, t_end, *, method="neubauer",
       q0, dq: [P, 3] rays in voxel coordinates.
       t_start, t_end: [P] the part of each ray to search (already clipped to the cells).
       method: cell root finder, "neubauer" | "analytic" (`_cell.first_root_multi`).
-      max_steps: iteration bound (default: enough to cross every cell once).
+      max_steps: iteration bound per ray (default: enough to cross every cell once).
+      lanes: None: one `while_loop` over the packet (until its slowest ray is done); an
+        int: the rays run on that many persistent lanes with refill (`jaxiso._lanes`),
+        for packets of a whole image. Same results.
 
     Returns:
       t [P] (inf on a miss), hit [P], which [P] int32 (isovalue index, -1 on a miss),
@@ -104,71 +109,101 @@ def traverse(hierarchy, isovalues, q0, dq, t_start, t_end, *, method="neubauer",
     n_cells = jnp.array([max(s - 1, 0) for s in shape], jnp.int32)
     if max_steps is None:
         max_steps = 4 * sum(shape) + 64
+    state = _start(hierarchy, n_cells, q0, dq, t_start, t_end)
+
+    def step(s):
+        return _step(hierarchy, isovalues, method, n_cells, s)
+
+    if lanes is None:
+        def cond(c):
+            it, s = c
+            return jnp.any(s["going"]) & (it < max_steps)
+
+        _, out = jax.lax.while_loop(cond, lambda c: (c[0] + 1, step(c[1])),
+                                    (jnp.int32(0), state))
+    else:
+        p = q0.shape[0]
+        order = jnp.argsort(~state["going"], stable=True)
+        queue = jax.tree_util.tree_map(lambda a: a[order], state)
+        queue["idx"] = order.astype(jnp.int32)
+        out = {k: state[k] for k in _RESULTS}
+
+        def write(res, s, target):
+            return {k: res[k].at[target].set(s[k], mode="drop") for k in _RESULTS}
+
+        out = run_lanes(step, lambda s: ~s["going"] | (s["steps"] >= max_steps), queue,
+                        jnp.sum(state["going"]).astype(jnp.int32), out, write,
+                        lanes=min(int(lanes), p))
+    return tuple(out[k] for k in _RESULTS)
+
+
+_RESULTS = ("t_hit", "hit", "which", "cell", "size", "steps")
+
+
+def _start(hierarchy, n_cells, q0, dq, t_start, t_end):
+    """Per-ray traversal state [P, ...] at the entry point."""
     p = q0.shape[0]
     start = q0 + jnp.maximum(t_start, 0.0)[:, None] * dq
     start = jnp.where(jnp.isfinite(t_start)[:, None], q0 + t_start[:, None] * dq, start)
     v0 = jnp.clip(jnp.floor(start).astype(jnp.int32), 0, jnp.maximum(n_cells - 1, 0))
-    live0 = (t_start <= t_end) & jnp.all(n_cells > 0)
-    state = dict(t=jnp.where(live0, t_start, jnp.inf), v=v0, live=live0,
-                 hit=jnp.zeros(p, bool), t_hit=jnp.full(p, jnp.inf, jnp.float32),
-                 which=jnp.full(p, -1, jnp.int32), cell=v0, size=jnp.ones(p, jnp.int32),
-                 steps=jnp.zeros(p, jnp.int32), extra=hierarchy.init(p), it=jnp.int32(0))
+    going = (t_start <= t_end) & jnp.all(n_cells > 0)
+    return dict(q0=q0, dq=dq, t_end=t_end, t=jnp.where(going, t_start, jnp.inf), v=v0,
+                going=going, hit=jnp.zeros(p, bool), t_hit=jnp.full(p, jnp.inf, jnp.float32),
+                which=jnp.full(p, -1, jnp.int32), cell=v0, size=jnp.ones(p, jnp.int32),
+                steps=jnp.zeros(p, jnp.int32), extra=hierarchy.init(p))
 
-    def cond(s):
-        return jnp.any(s["live"]) & (s["it"] < max_steps)
 
-    def body(s):
-        live, v, t = s["live"], s["v"], s["t"]
-        bits, at_cell, extra = hierarchy.locate(s["extra"], v, live)
-        at_cell = at_cell & live
-        size = jnp.left_shift(1, bits)
-        lo = jnp.left_shift(jnp.right_shift(v, bits[:, None]), bits[:, None])
-        t_out, v_next = _exit(q0, dq, lo, size[:, None], v)
+def _step(hierarchy, isovalues, method, n_cells, s):
+    """One traversal iteration of every ray of the state (rays not going are unchanged)."""
+    q0, dq, t_end = s["q0"], s["dq"], s["t_end"]
+    p = q0.shape[0]
+    live, v, t = s["going"], s["v"], s["t"]
+    bits, at_cell, extra = hierarchy.locate(s["extra"], v, live)
+    at_cell = at_cell & live
+    size = jnp.left_shift(1, bits)
+    lo = jnp.left_shift(jnp.right_shift(v, bits[:, None]), bits[:, None])
+    t_out, v_next = _exit(q0, dq, lo, size[:, None], v)
 
-        def intersect_cells(_):
-            # the cell is the cube [lo, lo + size]: size > 1 for a coarse (LOD) cell
-            corners = hierarchy.cell(extra, lo, bits)
-            scale = size.astype(jnp.float32)[:, None]
-            s1 = jnp.maximum(jnp.minimum(t_out, t_end) - t, 0.0)
-            p0 = jnp.clip((q0 + t[:, None] * dq - lo.astype(jnp.float32)) / scale, 0.0, 1.0)
-            # relative to the cell's smallest corner: data with a large offset (CT values
-            # ~1000 +- 1) keep their precision in the cubic's coefficients
-            low = jnp.min(corners, axis=-1, keepdims=True)
-            coeffs = _cell.ray_cubic(corners - low, p0, dq / scale)
-            s_root, found, which = _cell.first_root_multi(coeffs, isovalues[None, :] - low,
-                                                          s1, method=method)
-            # a face whose 4 corners all equal an isovalue carries F = iso exactly, but a
-            # float32 point on it rarely evaluates to exactly iso: where the ray enters or
-            # leaves through such a face (the edge of a plateau of voxels at the isovalue,
-            # common in integer data) the root is the face itself
-            p1 = p0 + (s1 / scale[:, 0])[:, None] * dq / scale
-            at_entry, k_entry = _iso_face(corners, p0, isovalues)
-            at_exit, k_exit = _iso_face(corners, p1, isovalues)
-            s_root = jnp.where(at_entry, 0.0, jnp.where(found, s_root, s1))
-            which = jnp.where(at_entry, k_entry, jnp.where(found, which, k_exit))
-            found = found | at_entry | at_exit
-            # a constant cell has no surface (its level set is all of it or nothing)
-            varying = jnp.max(corners, axis=-1) > jnp.min(corners, axis=-1)
-            found = found & at_cell & varying
-            return jnp.where(found, t + s_root, jnp.inf), found, which
+    def intersect_cells(_):
+        # the cell is the cube [lo, lo + size]: size > 1 for a coarse (LOD) cell
+        corners = hierarchy.cell(extra, lo, bits)
+        scale = size.astype(jnp.float32)[:, None]
+        s1 = jnp.maximum(jnp.minimum(t_out, t_end) - t, 0.0)
+        p0 = jnp.clip((q0 + t[:, None] * dq - lo.astype(jnp.float32)) / scale, 0.0, 1.0)
+        # relative to the cell's smallest corner: data with a large offset (CT values
+        # ~1000 +- 1) keep their precision in the cubic's coefficients
+        low = jnp.min(corners, axis=-1, keepdims=True)
+        coeffs = _cell.ray_cubic(corners - low, p0, dq / scale)
+        s_root, found, which = _cell.first_root_multi(coeffs, isovalues[None, :] - low,
+                                                      s1, method=method)
+        # a face whose 4 corners all equal an isovalue carries F = iso exactly, but a
+        # float32 point on it rarely evaluates to exactly iso: where the ray enters or
+        # leaves through such a face (the edge of a plateau of voxels at the isovalue,
+        # common in integer data) the root is the face itself
+        p1 = p0 + (s1 / scale[:, 0])[:, None] * dq / scale
+        at_entry, k_entry = _iso_face(corners, p0, isovalues)
+        at_exit, k_exit = _iso_face(corners, p1, isovalues)
+        s_root = jnp.where(at_entry, 0.0, jnp.where(found, s_root, s1))
+        which = jnp.where(at_entry, k_entry, jnp.where(found, which, k_exit))
+        found = found | at_entry | at_exit
+        # a constant cell has no surface (its level set is all of it or nothing)
+        varying = jnp.max(corners, axis=-1) > jnp.min(corners, axis=-1)
+        found = found & at_cell & varying
+        return jnp.where(found, t + s_root, jnp.inf), found, which
 
-        t_root, found, which = jax.lax.cond(
-            jnp.any(at_cell), intersect_cells,
-            lambda _: (jnp.full(p, jnp.inf, jnp.float32), jnp.zeros(p, bool),
-                       jnp.full(p, -1, jnp.int32)), None)
-        outside = jnp.any((v_next < 0) | (v_next >= n_cells), axis=-1)
-        moving = live & ~found
-        t_new = jnp.where(moving, jnp.maximum(t_out, t), t)
-        still = moving & ~outside & (t_new <= t_end)
-        extra = hierarchy.ancestor(extra, v, v_next, jnp.where(still, bits, 0))
-        return dict(
-            t=t_new, v=jnp.where(still[:, None], v_next, v), live=still,
-            hit=s["hit"] | found, t_hit=jnp.where(found, t_root, s["t_hit"]),
-            which=jnp.where(found, which, s["which"]),
-            cell=jnp.where(found[:, None], lo, s["cell"]),
-            size=jnp.where(found, size, s["size"]),
-            steps=s["steps"] + live.astype(jnp.int32), extra=extra, it=s["it"] + 1)
-
-    out = jax.lax.while_loop(cond, body, state)
-    return (out["t_hit"], out["hit"], out["which"], out["cell"], out["size"],
-            out["steps"])
+    t_root, found, which = jax.lax.cond(
+        jnp.any(at_cell), intersect_cells,
+        lambda _: (jnp.full(p, jnp.inf, jnp.float32), jnp.zeros(p, bool),
+                   jnp.full(p, -1, jnp.int32)), None)
+    outside = jnp.any((v_next < 0) | (v_next >= n_cells), axis=-1)
+    moving = live & ~found
+    t_new = jnp.where(moving, jnp.maximum(t_out, t), t)
+    still = moving & ~outside & (t_new <= t_end)
+    extra = hierarchy.ancestor(extra, v, v_next, jnp.where(still, bits, 0))
+    return dict(
+        s, t=t_new, v=jnp.where(still[:, None], v_next, v), going=still,
+        hit=s["hit"] | found, t_hit=jnp.where(found, t_root, s["t_hit"]),
+        which=jnp.where(found, which, s["which"]),
+        cell=jnp.where(found[:, None], lo, s["cell"]),
+        size=jnp.where(found, size, s["size"]),
+        steps=s["steps"] + live.astype(jnp.int32), extra=extra)

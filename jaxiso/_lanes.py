@@ -1,0 +1,104 @@
+"""Persistent lanes with refill: iterative per-ray work (bisection, hierarchy traversal)
+over a whole image as one queue.
+
+A batched `while_loop` over a packet runs until its slowest ray is done, so lanes idle
+behind it. Here a lane whose ray finishes writes its result and takes the next ray from
+the queue, so every iteration does `width` useful steps while the queue lasts. When the
+queue runs dry and few lanes are still busy, their rays move, with their state, to a
+narrower loop (width / 8, down to `min_width`), so the slow tail does not pay for idle
+lanes. Lanes step `refill_every` times between refills: refilling costs a gather and a
+scatter per state array, and a lane that finishes early idles until the next refill
+(measured for the implicits in benchmarks/NOTES.md: 4 was best).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+__all__ = ["run_lanes", "phase_widths"]
+
+
+def phase_widths(lanes: int, n: int, min_width: int = 32) -> list[int]:
+    """Lane counts of the successive phases for a queue of n rays: lanes, lanes / 8, ...
+    down to min_width (never more lanes than rays)."""
+    widths = [max(1, min(int(lanes), n))]
+    while widths[-1] > min_width:
+        widths.append(max(min_width, widths[-1] // 8))
+    return widths
+
+
+def _select(mask, new, old):
+    """Per-lane where over two state pytrees ([L, ...] leaves)."""
+    return jax.tree_util.tree_map(
+        lambda a, b: jnp.where(mask.reshape((-1,) + (1,) * (b.ndim - 1)), a, b), new, old)
+
+
+def run_lanes(step, done, queue, n_queue, results, write, *, lanes: int,
+              refill_every: int = 4, min_width: int = 32):
+    """Run the rays of `queue` to completion on persistent lanes.
+
+    Args:
+      step: state -> state, one iteration of every lane (leaves [L, ...]); lanes that are
+        done or empty keep their old state whatever step returns.
+      done: state -> [L] bool, the lane's ray is finished (it must turn true within a
+        bounded number of steps: step counters belong in the state).
+      queue: pytree of per-ray start states, leaves [Q, ...]; the first `n_queue` (traced
+        int32) entries are the rays to run, in order.
+      n_queue: [] int32.
+      results: pytree of outputs, leaves [N, ...].
+      write: (results, state, target) -> results, where target [L] int32 is the output row
+        of each finished lane and N elsewhere (scatter with mode="drop").
+      lanes: static width of the first phase.
+
+    Returns:
+      results after every queued ray was written.
+    """
+    q_len = jax.tree_util.tree_leaves(queue)[0].shape[0]
+    n_out = jax.tree_util.tree_leaves(results)[0].shape[0]
+    widths = phase_widths(lanes, q_len, min_width)
+    for i, width in enumerate(widths):
+        stop_busy = widths[i + 1] if i + 1 < len(widths) else 0
+        results, queue, n_queue = _phase(step, done, queue, n_queue, results, write, n_out,
+                                         width, stop_busy, refill_every)
+    return results
+
+
+def _phase(step, done, queue, n_queue, results, write, n_out, width, stop_busy,
+           refill_every):
+    """Run queued rays on `width` lanes until the queue is empty and at most `stop_busy`
+    lanes are busy; return (results, the busy lanes' states as a queue, their count)."""
+    q_len = jax.tree_util.tree_leaves(queue)[0].shape[0]
+
+    def load(slot):
+        """(live [L], states [L, ...]) of queue slots [L] (slots past the queue: not live)."""
+        j = jnp.minimum(slot, q_len - 1)
+        return slot < n_queue, jax.tree_util.tree_map(lambda a: a[j], queue)
+
+    def one(_, lane):
+        live, state = lane
+        busy = live & ~done(state)
+        return live, _select(busy, step(state), state)
+
+    def cond(carry):
+        nxt, (live, state), _ = carry
+        busy = live & ~done(state)
+        return (nxt < n_queue) | (jnp.sum(busy) > stop_busy)
+
+    def body(carry):
+        nxt, lane, results = carry
+        live, state = lax.fori_loop(0, refill_every, one, lane)
+        finished = live & done(state)
+        results = write(results, state, jnp.where(finished, state["idx"], n_out))
+        fresh_live, fresh = load(nxt + jnp.cumsum(finished.astype(jnp.int32)) - 1)
+        live = jnp.where(finished, fresh_live, live)
+        state = _select(finished, fresh, state)
+        return nxt + jnp.sum(finished).astype(jnp.int32), (live, state), results
+
+    carry = (jnp.int32(width), load(jnp.arange(width, dtype=jnp.int32)), results)
+    _, (live, state), results = lax.while_loop(cond, body, carry)
+    busy = live & ~done(state)
+    order = jnp.argsort(~busy, stable=True)
+    rest = jax.tree_util.tree_map(lambda a: a[order], state)
+    return results, rest, jnp.sum(busy).astype(jnp.int32)
