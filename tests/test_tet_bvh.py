@@ -401,7 +401,7 @@ def test_refit_jax_matches_numpy(mesh, method):
 def test_bvh_is_a_pytree_with_static_meta(mesh):
     bvh = build_bvh(mesh, method="sah", leaf_size=5)
     leaves, tree = jax.tree.flatten(bvh)
-    assert len(leaves) == 8
+    assert len(leaves) == 10
     again = jax.tree.unflatten(tree, leaves)
     assert (again.leaf_size, again.method) == (5, "sah")
     bumped = jax.tree.map(lambda a: a, dataclasses.replace(bvh, leaf_size=7))
@@ -424,8 +424,49 @@ def test_stats_and_memory_report(mesh):
     assert rep["points_bytes"] == 64 * 3 * 4 and rep["tets_bytes"] == 162 * 4 * 4
     assert rep["values_bytes_per_step"] == 64 * 4 and rep["values_bytes"] == 3 * 64 * 4
     assert rep["mesh_bytes"] == 768 + 2592 + 768
-    assert rep["bvh_node_bytes"] == n * (2 * 16 + 4 * 4) + interior * 4
+    # lo, hi; skip, first, count, depth; split_axis (int8); escape (8 octants); levels
+    assert rep["bvh_node_bytes"] == n * (2 * 16 + 4 * 4 + 1 + 8 * 4) + interior * 4
     assert rep["bvh_order_bytes"] == 162 * 4
     assert rep["total_bytes"] == rep["mesh_bytes"] + rep["bvh_bytes"]
     assert np.isclose(rep["overhead_pct"], 100 * rep["bvh_bytes"] / rep["mesh_bytes"])
     assert np.isclose(rep["per_step_overhead_pct"], 3 * rep["overhead_pct"])
+
+
+@pytest.mark.parametrize("method", ["bih", "sah"])
+def test_escape_pointers_walk_the_tree_near_child_first_for_every_octant(mesh, method):
+    bvh = build_bvh(mesh, method=method, leaf_size=3)
+    skip, count = np.asarray(bvh.skip), np.asarray(bvh.count)
+    centre = (np.asarray(bvh.lo, np.float64) + np.asarray(bvh.hi, np.float64))[:, :3] / 2
+    escape, axes = np.asarray(bvh.escape), np.asarray(bvh.split_axis)
+    n = bvh.n_nodes
+    for octant in range(8):
+        sign = np.array([-1.0 if octant >> (2 - a) & 1 else 1.0 for a in range(3)])
+        expected = []
+
+        def visit(i):
+            expected.append(i)
+            if count[i]:
+                return
+            left, right = i + 1, skip[i + 1]
+            gap = centre[right] - centre[left]
+            axis = int(np.argmax(np.abs(gap)))
+            assert axes[i] // 2 == axis
+            # the child whose centre comes first along the ray's direction on that axis
+            first, second = (right, left) if gap[axis] * sign[axis] < 0 else (left, right)
+            if gap[axis] != 0:
+                assert (centre[first] - centre[second])[axis] * sign[axis] < 0
+            visit(first)
+            visit(second)
+
+        visit(0)
+        walked, node = [], 0
+        while node < n:  # a ray that enters every node
+            walked.append(node)
+            if count[node]:
+                node = escape[octant, node]
+            else:
+                axis, lower_right = divmod(int(axes[node]), 2)
+                right = (octant >> (2 - axis) & 1) ^ lower_right
+                node = skip[node + 1] if right else node + 1
+            assert len(walked) <= n
+        assert walked == expected, octant

@@ -20,6 +20,8 @@ W = 20
 EYE = np.array([2.2, 1.7, 1.4])
 POINTS, TETS = data.cube_tets(5)
 _trace = jax.jit(lambda scene, rays: ji.intersect(scene, rays, packet=64))
+# the whole image on 64 persistent lanes, then 32 for the tail
+_trace_lanes = jax.jit(lambda scene, rays: ji.intersect(scene, rays, packet=W * W, lanes=64))
 _polygon_t = jax.jit(lambda o, d, p, f, ids, iso: isopolygon_hits(o, d, p, f, ids, iso)[0])
 
 
@@ -29,14 +31,14 @@ def _camera():
     return cam.rays().reshape((W * W,)), o, d
 
 
-def _compare(values, iso, *, clip_box=None, **scene_options):
+def _compare(values, iso, *, clip_box=None, lanes=False, **scene_options):
     rays, o, d = _camera()
     t_ref, h_ref, w_ref, _ = ref.first_hits(POINTS.astype(np.float64), TETS,
                                             np.asarray(values, np.float64), o, d, iso,
                                             clip_box=clip_box)
     scene = TetIsosurface(tet_mesh(POINTS, TETS, values), iso, clip_box=clip_box,
                           **scene_options)
-    hits = _trace(scene, rays)
+    hits = (_trace_lanes if lanes else _trace)(scene, rays)
     hit, t = np.asarray(hits.hit), np.asarray(hits.t)
     assert np.array_equal(hit, h_ref), f"{int((hit != h_ref).sum())} pixels differ"
     np.testing.assert_allclose(t[hit], t_ref[hit], rtol=1e-5)
@@ -45,12 +47,13 @@ def _compare(values, iso, *, clip_box=None, **scene_options):
     return hits, h_ref
 
 
-@pytest.mark.parametrize("field, iso, bvh", [
-    ("sphere", [0.0], "bih"), ("wave", [0.0, 0.5], "sah"), ("random", [0.1, -0.3, 0.5], "bih")])
-def test_hits_match_reference(field, iso, bvh):
+@pytest.mark.parametrize("field, iso, bvh, lanes", [
+    ("sphere", [0.0], "bih", False), ("wave", [0.0, 0.5], "sah", False),
+    ("random", [0.1, -0.3, 0.5], "bih", False), ("wave", [0.0, 0.5], "bih", True)])
+def test_hits_match_reference(field, iso, bvh, lanes):
     values = {"sphere": data.sphere_field(POINTS), "wave": data.wave_field(POINTS),
               "random": data.random_field(POINTS, 1)}[field]
-    _, h_ref = _compare(values, iso, bvh=bvh)
+    _, h_ref = _compare(values, iso, bvh=bvh, lanes=lanes)
     assert h_ref.sum() > 40
 
 

@@ -12,6 +12,12 @@ Layout (flat arrays, N nodes in depth-first pre-order; what the traversal relies
   subtree's tets start, and leaves' ranges follow one another in pre-order;
 * ``order`` int32 [T'] indices of the mesh's non-degenerate tets (degenerate ones bound no
   volume and are left out; tets with a constant value are kept).
+* near-child-first order without a stack: ``split_axis[i]`` (int8, interior nodes) codes
+  the axis along which i's children lie (2 axis + 1 when the right child is the lower
+  one), measured on the build's geometry; a ray whose direction points along +axis visits
+  the lower child first. ``escape[o, i]`` is the node after i's subtree in that order for
+  rays of octant o = 4 (dx < 0) + 2 (dy < 0) + (dz < 0). A ray nearer hits first, so its
+  best t culls more of the rest (the seed's ordered traversal, Sec. 5.4.2).
 
 A mesh whose tets are all degenerate gets a single empty leaf (count 0, lo = inf,
 hi = -inf) that no traversal enters.
@@ -34,7 +40,7 @@ import numpy as np
 from jaxiso.tetra._mesh import TetMesh, corner_points, degenerate_mask
 
 __all__ = ["BVH", "build_bvh", "refit", "refit_jax", "memory_report", "bvh_stats",
-           "METHODS"]
+           "right_first", "octant_of", "METHODS"]
 
 METHODS = ("bih", "sah")
 MORTON_BITS = 10  # per axis: a 1024^3 grid over the centroids' bounding cube
@@ -58,6 +64,7 @@ class BVH:
       order: int32 [T'] tet indices of the non-degenerate tets.
       depth: int32 [N] depth of each node (root 0).
       levels: int32 [I] the interior nodes, deepest level first (a bottom-up refit order).
+      split_axis: int8 [N] near-child code (module doc); escape: int32 [8, N] per octant.
       leaf_size, method: static build parameters.
       level_sizes: static tuple, how many of `levels` belong to each depth, deepest first.
     """
@@ -70,6 +77,8 @@ class BVH:
     order: np.ndarray
     depth: np.ndarray
     levels: np.ndarray
+    split_axis: np.ndarray
+    escape: np.ndarray
     leaf_size: int = _static(8)
     method: str = _static("bih")
     level_sizes: tuple = _static(())
@@ -106,9 +115,64 @@ def build_bvh(mesh: TetMesh, *, method: str = "bih", leaf_size: int = 8,
     skip, first, count, depth, levels, level_sizes = _preorder(
         *_grow(kept.size, int(leaf_size), split))
     empty = np.zeros((skip.size, 4), np.float32)
-    bvh = BVH(empty, empty, skip, first, count, kept[perm], depth, levels,
+    no_order = np.zeros(skip.size, np.int8), np.zeros((8, skip.size), np.int32)
+    bvh = BVH(empty, empty, skip, first, count, kept[perm], depth, levels, *no_order,
               leaf_size=int(leaf_size), method=method, level_sizes=level_sizes)
-    return refit(bvh, mesh, step)
+    bvh = refit(bvh, mesh, step)
+    split_axis = _split_axes(bvh)
+    return dataclasses.replace(bvh, split_axis=split_axis,
+                               escape=_escapes(bvh.skip, bvh.count, bvh.depth, split_axis))
+
+
+def right_first(split_axis, octant):
+    """bool: rays of `octant` visit the right child first (arrays broadcast; jnp or np)."""
+    axis, lower_right = split_axis // 2, split_axis % 2
+    negative = (octant >> (2 - axis)) & 1  # the ray runs towards lower coordinates
+    return (negative ^ lower_right) == 1
+
+
+def octant_of(d):
+    """int32 [...] octant 4 (dx < 0) + 2 (dy < 0) + (dz < 0) of directions d [..., 3]."""
+    neg = (d < 0).astype(jnp.int32)
+    return 4 * neg[..., 0] + 2 * neg[..., 1] + neg[..., 2]
+
+
+def _split_axes(bvh):
+    """int8 [N]: per interior node the axis of largest child-centre separation, + 1 when
+    the right child lies lower on it (0 for leaves)."""
+    skip, count = np.asarray(bvh.skip), np.asarray(bvh.count)
+    lo, hi = np.asarray(bvh.lo, np.float64)[:, :3], np.asarray(bvh.hi, np.float64)[:, :3]
+    inner = np.flatnonzero(count == 0)
+    inner = inner[inner + 1 < skip.size]  # the lone empty leaf of a degenerate mesh
+    left, right = inner + 1, skip[inner + 1]
+    gap = (lo[right] + hi[right]) - (lo[left] + hi[left])
+    gap = np.where(np.isfinite(gap), gap, 0.0)
+    axis = np.argmax(np.abs(gap), axis=1)
+    lower_right = np.take_along_axis(gap, axis[:, None], 1)[:, 0] < 0
+    code = np.zeros(skip.size, np.int8)
+    code[inner] = 2 * axis + lower_right
+    return code
+
+
+def _escapes(skip, count, depth, split_axis):
+    """int32 [8, N]: per octant the node after each subtree in near-first order (N past
+    the end); top-down by depth, vectorised over a level's nodes and the 8 octants."""
+    skip, count, depth = np.asarray(skip), np.asarray(count), np.asarray(depth)
+    n = skip.size
+    escape = np.full((8, n), n, np.int32)
+    octants = np.arange(8)[:, None]
+    for d in range(int(depth.max()) + 1 if n else 0):
+        inner = np.flatnonzero((depth == d) & (count == 0))
+        inner = inner[inner + 1 < n]
+        if not inner.size:
+            continue
+        left, right = inner + 1, skip[inner + 1]
+        rf = right_first(split_axis[inner][None, :].astype(np.int32), octants)  # [8, I]
+        near, far = np.where(rf, right, left), np.where(rf, left, right)
+        rows = np.broadcast_to(octants, near.shape)
+        escape[rows, near] = far
+        escape[rows, far] = escape[:, inner]
+    return escape
 
 
 def refit(bvh: BVH, mesh: TetMesh, step: int = 0) -> BVH:
@@ -165,12 +229,13 @@ def memory_report(bvh: BVH, mesh: TetMesh) -> dict:
     """Bytes of the raw mesh and of the BVH (seed Table 5.5 analog).
 
     mesh_bytes = points + tets + all value steps; bvh_bytes = node arrays (lo, hi, skip,
-    first, count, depth, levels) + order; overhead_pct = 100 * bvh_bytes / mesh_bytes for
-    one BVH shared by all steps (Schema II), per_step_overhead_pct for one BVH per step
-    (Schema I); worst_case_node_bytes: 2T - 1 nodes as the seed pre-allocates.
+    first, count, depth, levels, split_axis, escape) + order; overhead_pct = 100 * bvh_bytes
+    / mesh_bytes for one BVH shared by all steps (Schema II), per_step_overhead_pct for one
+    BVH per step (Schema I); worst_case_node_bytes: 2T - 1 nodes as the seed pre-allocates.
     """
     arrays = {k: np.asarray(getattr(bvh, k)) for k in
-              ("lo", "hi", "skip", "first", "count", "depth", "levels")}
+              ("lo", "hi", "skip", "first", "count", "depth", "levels", "split_axis",
+               "escape")}
     node_bytes = sum(a.nbytes for a in arrays.values())
     order_bytes = np.asarray(bvh.order).nbytes
     values = np.asarray(mesh.values)

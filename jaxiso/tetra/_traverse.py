@@ -1,12 +1,14 @@
 """Stackless traversal of the implicit BVH (seed Sec. 5.4) with skip pointers.
 
 Nodes are in depth-first pre-order: the left child of an interior node is the next node
-and `skip` jumps over a subtree. One `lax.while_loop` runs a packet of rays [P]; every
-iteration each live ray looks at one node: it enters it when the ray's box test passes
-within [t_min, best t so far] and the node's value range holds an isovalue, otherwise
-skips it. A leaf's tets are intersected (under a `lax.cond`, only when some ray of the
-packet is at a leaf) and the ray moves on with `skip`; the loop ends when every ray has
-left the last node.
+and `skip` jumps over a subtree. A ray goes down to the child nearer along the node's
+split axis first and leaves a subtree by its octant's escape pointer (`_bvh`). One
+`lax.while_loop` runs a packet of rays [P] (or persistent lanes with refill over a whole
+image, `jaxiso._lanes`); every iteration each live ray looks at one node: it enters it
+when the ray's box test passes within [t_min, best t so far] and the node's value range
+holds an isovalue, otherwise skips it. A leaf's tets are intersected (under a `lax.cond`,
+only when some ray of the packet is at a leaf) and the ray moves on by its escape; the loop
+ends when every ray has left the last node.
 """
 
 from __future__ import annotations
@@ -14,6 +16,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from .._lanes import run_lanes
+from ._bvh import octant_of, right_first
 from ._isopoly import isopolygon_hits
 
 __all__ = ["traverse"]
@@ -35,80 +39,116 @@ def _box_enter(o, inv_d, lo, hi, t0, t1):
     return (jnp.maximum(near, t0) <= jnp.minimum(far, t1))
 
 
-def traverse(bvh, points, tets, values, isovalues, o, d, t_min, t_max, *, max_steps=None):
+def traverse(bvh, points, tets, values, isovalues, o, d, t_min, t_max, *, max_steps=None,
+             lanes=None):
     """Nearest crossing of each ray with any isosurface of the linear tets.
 
     Args:
       bvh: `BVH` with bounds valid for `points`/`values`.
       points [V, 3], tets [T, 4], values [V]: the mesh at one time step.
       isovalues: [K]; o, d: [P, 3]; t_min, t_max: [P].
-      max_steps: iteration bound (default 2 N + 8, enough to visit every node once).
+      max_steps: iteration bound per ray (default 2 N + 8, enough to visit every node
+        once).
+      lanes: None: one `while_loop` over the packet; an int: persistent lanes with refill
+        over the packet (`jaxiso._lanes`; for a whole image). Same results.
 
     Returns:
       t [P] (inf on a miss), hit [P], which [P] isovalue index (-1), tet [P] (-1),
       nodes [P] nodes visited, leaves [P] leaves intersected (work counters).
     """
     n_nodes = bvh.skip.shape[0]
-    leaf_size = bvh.leaf_size
     if max_steps is None:
         max_steps = 2 * n_nodes + 8
     p = o.shape[0]
     # one snapping distance for the whole mesh (see isopolygon_hits)
     snap = SNAP * jnp.max(jnp.abs(values))
-    inv_d = 1.0 / d  # inf on axis-parallel rays; the box test maps 0 * inf to no limit
-    state = dict(node=jnp.where(t_min <= t_max, 0, n_nodes).astype(jnp.int32),
+    state = dict(o=o, inv_d=1.0 / d,  # inf on axis-parallel rays: see _box_enter
+                 d=d, t_min=t_min, t_max=t_max, octant=octant_of(d),
+                 node=jnp.where(t_min <= t_max, 0, n_nodes).astype(jnp.int32),
                  t=jnp.full(p, jnp.inf, jnp.float32), which=jnp.full(p, -1, jnp.int32),
                  tet=jnp.full(p, -1, jnp.int32), nodes=jnp.zeros(p, jnp.int32),
-                 leaves=jnp.zeros(p, jnp.int32), it=jnp.int32(0))
-    slots = jnp.arange(leaf_size, dtype=jnp.int32)
+                 leaves=jnp.zeros(p, jnp.int32))
 
-    def cond(s):
-        return jnp.any(s["node"] < n_nodes) & (s["it"] < max_steps)
+    def step(s):
+        return _step(bvh, points, tets, values, isovalues, snap, s)
 
-    def body(s):
-        live = s["node"] < n_nodes
-        node = jnp.minimum(s["node"], n_nodes - 1)
-        lo, hi = bvh.lo[node], bvh.hi[node]
-        holds = jnp.any((lo[:, 3:4] <= isovalues) & (isovalues <= hi[:, 3:4]), axis=-1)
-        enter = live & holds & _box_enter(o, inv_d, lo[:, :3], hi[:, :3], t_min,
-                                          jnp.minimum(t_max, s["t"]))
-        count = bvh.count[node]
-        leaf = enter & (count > 0)
+    if lanes is None:
+        def cond(c):
+            it, s = c
+            return jnp.any(s["node"] < n_nodes) & (it < max_steps)
 
-        def intersect_leaf(_):
-            slot = jnp.minimum(bvh.first[node][:, None] + slots, bvh.order.shape[0] - 1)
-            tet_ids = bvh.order[slot]                                    # [P, L]
-            used = leaf[:, None] & (slots[None, :] < count[:, None])
-            ids = tets[tet_ids]                                          # [P, L, 4]
-            pts = points[ids]
-            vals = values[ids]
-            best_t = jnp.full(tet_ids.shape, jnp.inf, jnp.float32)
-            best_k = jnp.full(tet_ids.shape, -1, jnp.int32)
-            for k in range(isovalues.shape[0]):
-                t_k, _ = isopolygon_hits(o, d, pts, vals, ids, isovalues[k], snap)
-                ok = used & (t_k >= t_min[:, None]) & (t_k <= t_max[:, None]) & (t_k < best_t)
-                best_t = jnp.where(ok, t_k, best_t)
-                best_k = jnp.where(ok, k, best_k)
-            j = jnp.argmin(best_t, axis=-1)
-            t_leaf = jnp.take_along_axis(best_t, j[:, None], -1)[:, 0]
-            k_leaf = jnp.take_along_axis(best_k, j[:, None], -1)[:, 0]
-            tet_leaf = jnp.take_along_axis(tet_ids, j[:, None], -1)[:, 0]
-            return t_leaf, k_leaf, tet_leaf
+        _, out = jax.lax.while_loop(cond, lambda c: (c[0] + 1, step(c[1])),
+                                    (jnp.int32(0), state))
+    else:
+        going = state["node"] < n_nodes
+        order = jnp.argsort(~going, stable=True)
+        queue = jax.tree_util.tree_map(lambda a: a[order], state)
+        queue["idx"] = order.astype(jnp.int32)
+        out = {k: state[k] for k in _RESULTS}
 
-        t_leaf, k_leaf, tet_leaf = jax.lax.cond(
-            jnp.any(leaf), intersect_leaf,
-            lambda _: (jnp.full(p, jnp.inf, jnp.float32), jnp.full(p, -1, jnp.int32),
-                       jnp.full(p, -1, jnp.int32)), None)
-        better = leaf & (t_leaf < s["t"])
-        down = enter & (count == 0)
-        nxt = jnp.where(down, node + 1, bvh.skip[node])
-        return dict(node=jnp.where(live, nxt, s["node"]),
-                    t=jnp.where(better, t_leaf, s["t"]),
-                    which=jnp.where(better, k_leaf, s["which"]),
-                    tet=jnp.where(better, tet_leaf, s["tet"]),
-                    nodes=s["nodes"] + live.astype(jnp.int32),
-                    leaves=s["leaves"] + leaf.astype(jnp.int32), it=s["it"] + 1)
+        def write(res, s, target):
+            return {k: res[k].at[target].set(s[k], mode="drop") for k in _RESULTS}
 
-    out = jax.lax.while_loop(cond, body, state)
+        out = run_lanes(step, lambda s: (s["node"] >= n_nodes) | (s["nodes"] >= max_steps),
+                        queue, jnp.sum(going).astype(jnp.int32), out, write,
+                        lanes=min(int(lanes), p))
     hit = jnp.isfinite(out["t"])
     return out["t"], hit, out["which"], out["tet"], out["nodes"], out["leaves"]
+
+
+_RESULTS = ("t", "which", "tet", "nodes", "leaves")
+
+
+def _step(bvh, points, tets, values, isovalues, snap, s):
+    """One node visit of every ray of the state (rays past the last node unchanged)."""
+    n_nodes = bvh.skip.shape[0]
+    leaf_size = bvh.leaf_size
+    slots = jnp.arange(leaf_size, dtype=jnp.int32)
+    o, d, t_min, t_max = s["o"], s["d"], s["t_min"], s["t_max"]
+    p = o.shape[0]
+    live = s["node"] < n_nodes
+    node = jnp.minimum(s["node"], n_nodes - 1)
+    lo, hi = bvh.lo[node], bvh.hi[node]
+    holds = jnp.any((lo[:, 3:4] <= isovalues) & (isovalues <= hi[:, 3:4]), axis=-1)
+    enter = live & holds & _box_enter(o, s["inv_d"], lo[:, :3], hi[:, :3], t_min,
+                                      jnp.minimum(t_max, s["t"]))
+    count = bvh.count[node]
+    leaf = enter & (count > 0)
+
+    def intersect_leaf(_):
+        slot = jnp.minimum(bvh.first[node][:, None] + slots, bvh.order.shape[0] - 1)
+        tet_ids = bvh.order[slot]                                    # [P, L]
+        used = leaf[:, None] & (slots[None, :] < count[:, None])
+        ids = tets[tet_ids]                                          # [P, L, 4]
+        pts = points[ids]
+        vals = values[ids]
+        best_t = jnp.full(tet_ids.shape, jnp.inf, jnp.float32)
+        best_k = jnp.full(tet_ids.shape, -1, jnp.int32)
+        for k in range(isovalues.shape[0]):
+            t_k, _ = isopolygon_hits(o, d, pts, vals, ids, isovalues[k], snap)
+            ok = used & (t_k >= t_min[:, None]) & (t_k <= t_max[:, None]) & (t_k < best_t)
+            best_t = jnp.where(ok, t_k, best_t)
+            best_k = jnp.where(ok, k, best_k)
+        j = jnp.argmin(best_t, axis=-1)
+        t_leaf = jnp.take_along_axis(best_t, j[:, None], -1)[:, 0]
+        k_leaf = jnp.take_along_axis(best_k, j[:, None], -1)[:, 0]
+        tet_leaf = jnp.take_along_axis(tet_ids, j[:, None], -1)[:, 0]
+        return t_leaf, k_leaf, tet_leaf
+
+    t_leaf, k_leaf, tet_leaf = jax.lax.cond(
+        jnp.any(leaf), intersect_leaf,
+        lambda _: (jnp.full(p, jnp.inf, jnp.float32), jnp.full(p, -1, jnp.int32),
+                   jnp.full(p, -1, jnp.int32)), None)
+    better = leaf & (t_leaf < s["t"])
+    down = enter & (count == 0)
+    # near child first: the ray's best t then culls more of the far one
+    left = jnp.minimum(node + 1, n_nodes - 1)
+    near = jnp.where(right_first(bvh.split_axis[node].astype(jnp.int32), s["octant"]),
+                     bvh.skip[left], left)
+    nxt = jnp.where(down, near, bvh.escape[s["octant"], node])
+    return dict(s, node=jnp.where(live, nxt, s["node"]),
+                t=jnp.where(better, t_leaf, s["t"]),
+                which=jnp.where(better, k_leaf, s["which"]),
+                tet=jnp.where(better, tet_leaf, s["tet"]),
+                nodes=s["nodes"] + live.astype(jnp.int32),
+                leaves=s["leaves"] + leaf.astype(jnp.int32))
