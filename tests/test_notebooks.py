@@ -25,7 +25,8 @@ def _images(cell):
     return sum("image/png" in out.get("data", {}) for out in cell.get("outputs", []))
 
 
-@pytest.mark.parametrize("name", ["01_implicits.ipynb", "02_volumes.ipynb"])
+@pytest.mark.parametrize("name", ["01_implicits.ipynb", "02_volumes.ipynb",
+                                  "03_tet_meshes.ipynb"])
 def test_notebook_runs(name, monkeypatch):
     _require("nbformat", "nbclient", "ipykernel")
     import nbformat
