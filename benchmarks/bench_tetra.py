@@ -30,8 +30,8 @@ Sections:
                ``jaxiso.tetra._traverse.traverse``: nodes visited and leaves intersected;
                leaves x leaf_size bounds the ray-tet (isopolygon) tests from above,
                leaves x the mean leaf size estimates them. Two views: the others' and
-               its opposite (the traversal takes left children first whatever the ray's
-               direction, so the work depends on which side the eye is).
+               its opposite (the traversal takes the near child first by the ray's
+               octant, so the work should barely depend on the side the eye is on).
   modalities   render cost of 2 and 4 isosurfaces, shadows, transparency (2 and 4 layers),
                a clip box and smooth normals, relative to the plain render.
   timevarying  a new time step: ``with_time_step`` (jit refit of the value bounds) vs a
@@ -102,14 +102,14 @@ FIELDS = {
 }
 VIEW_DIRECTION = (1.0, 0.78, 0.62)  # from the target towards the eye
 FOV = 35.0
-# The traversal visits a node's left child (lower coordinates along the split axis) first
-# whatever the ray's direction, so work per ray depends on the view: table54 runs both.
+# The traversal visits the child nearer along the split axis first, by the ray's octant
+# (before it took the left child first: work then depended on the view); table54 runs both
+# sides to show the work no longer does.
 WORK_VIEWS = {
     "default": (VIEW_DIRECTION, "the other sections' view: rays run towards lower "
-                                "coordinates, so the far (left) child is visited first"),
+                                "coordinates"),
     "opposite": (tuple(-c for c in VIEW_DIRECTION), "eye on the other side: rays run "
-                                                    "towards higher coordinates, near "
-                                                    "child first"),
+                                                    "towards higher coordinates"),
 }
 BUILD_TARGET_S = 5.0
 BUILD_TARGET_TETS = 900_000  # "1M tets": cube_tets(55) has 998,250
