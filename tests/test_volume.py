@@ -257,6 +257,22 @@ def test_level_of_detail_does_not_cull_nodes_whose_coarse_cells_hold_the_surface
     assert not np.any(inner & ~np.asarray(lod.hit).reshape(48, 48))
 
 
+def test_shadow_rays_trace_a_coarser_level_of_detail():
+    # render passes shadow rays eps * shadow_eps_scale; with level of detail that scales
+    # dP/dV (seed Sec. 4.5.2): the same hits as the scene at that coarser quality
+    vol = OctreeVolume.from_array(data.mixing(32, seed=0, time=2.0), spacing=1 / 31)
+    cam = ji.Camera.look_at((3.2, 2.4, 2.6), (0.5, 0.5, 0.5), fov=30, width=24, height=24)
+    rays = cam.rays().reshape((24 * 24,))
+    lod = lod_for(cam, 0.5)
+    scene = VolumeIsosurface(vol, 128.0, lod=lod)
+    shadow = jax.jit(lambda s, r: ji.intersect(s, r, packet=64, eps=8 * s.eps))(scene, rays)
+    coarse = _trace(scene.with_lod(lod.coarser(8.0)), rays)
+    fine = _trace(scene, rays)
+    np.testing.assert_array_equal(np.asarray(shadow.hit), np.asarray(coarse.hit))
+    np.testing.assert_array_equal(np.asarray(shadow.t), np.asarray(coarse.t))
+    assert np.any(np.asarray(shadow.t) != np.asarray(fine.t))  # eps did coarsen it
+
+
 def test_sequence_switches_time_step_without_retrace():
     frames = [data.mixing(12, seed=0, time=t) for t in (0.0, 2.0, 4.0)]
     seq = VolumeSequence.from_arrays(frames, spacing=1 / 11)
