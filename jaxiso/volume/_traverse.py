@@ -109,7 +109,7 @@ def traverse(hierarchy, isovalues, q0, dq, t_start, t_end, *, method="neubauer",
     n_cells = jnp.array([max(s - 1, 0) for s in shape], jnp.int32)
     if max_steps is None:
         max_steps = 4 * sum(shape) + 64
-    state = _start(hierarchy, n_cells, q0, dq, t_start, t_end)
+    state = _start(hierarchy, n_cells, q0, dq, t_start, t_end, isovalues.shape[0])
 
     def step(s):
         return _step(hierarchy, isovalues, method, n_cells, s)
@@ -140,8 +140,9 @@ def traverse(hierarchy, isovalues, q0, dq, t_start, t_end, *, method="neubauer",
 _RESULTS = ("t_hit", "hit", "which", "cell", "size", "steps")
 
 
-def _start(hierarchy, n_cells, q0, dq, t_start, t_end):
-    """Per-ray traversal state [P, ...] at the entry point."""
+def _start(hierarchy, n_cells, q0, dq, t_start, t_end, n_iso):
+    """Per-ray traversal state [P, ...] at the entry point. `side` [P, K] is the sign of
+    F - isovalue where the ray left the last cell it intersected (0: not known yet)."""
     p = q0.shape[0]
     start = q0 + jnp.maximum(t_start, 0.0)[:, None] * dq
     start = jnp.where(jnp.isfinite(t_start)[:, None], q0 + t_start[:, None] * dq, start)
@@ -150,7 +151,8 @@ def _start(hierarchy, n_cells, q0, dq, t_start, t_end):
     return dict(q0=q0, dq=dq, t_end=t_end, t=jnp.where(going, t_start, jnp.inf), v=v0,
                 going=going, hit=jnp.zeros(p, bool), t_hit=jnp.full(p, jnp.inf, jnp.float32),
                 which=jnp.full(p, -1, jnp.int32), cell=v0, size=jnp.ones(p, jnp.int32),
-                steps=jnp.zeros(p, jnp.int32), extra=hierarchy.init(p))
+                steps=jnp.zeros(p, jnp.int32), side=jnp.zeros((p, n_iso), jnp.int8),
+                extra=hierarchy.init(p))
 
 
 def _step(hierarchy, isovalues, method, n_cells, s):
@@ -174,8 +176,22 @@ def _step(hierarchy, isovalues, method, n_cells, s):
         # ~1000 +- 1) keep their precision in the cubic's coefficients
         low = jnp.min(corners, axis=-1, keepdims=True)
         coeffs = _cell.ray_cubic(corners - low, p0, dq / scale)
-        s_root, found, which = _cell.first_root_multi(coeffs, isovalues[None, :] - low,
-                                                      s1, method=method)
+        iso_rel = isovalues[None, :] - low
+        s_root, found, which = _cell.first_root_multi(coeffs, iso_rel, s1, method=method)
+        # Watertight across cells: the field is continuous, but this cell's value at its
+        # entry face and the last cell's at its exit face are two float32 evaluations of
+        # it. A root within rounding of the shared face can fall outside both cells'
+        # [0, s1] (a crack: one pixel in 4096 of a 512^3 mixing layer). So a sign change
+        # between the last exit and this entry is a root at the entry, and a sign change
+        # over this cell that the root finder missed is a root at its exit
+        # (the root finder evaluates its ends its own way).
+        a = _cell._normalise(coeffs, s1)
+        entry = jnp.sign(coeffs[:, :1] - iso_rel)                        # [P, K]
+        exit_ = jnp.sign(_cell._horner(a, 1.0)[:, None] - iso_rel)
+        # (an end exactly at the isovalue is a root too: the closed rule)
+        crack = (s["side"].astype(jnp.float32) * entry < 0) | (entry == 0)
+        missed = ~found[:, None] & ((entry * exit_ < 0) | (exit_ == 0))
+        side = jnp.where(jnp.isfinite(exit_), exit_, 0.0).astype(jnp.int8)
         # a face whose 4 corners all equal an isovalue carries F = iso exactly, but a
         # float32 point on it rarely evaluates to exactly iso: where the ray enters or
         # leaves through such a face (the edge of a plateau of voxels at the isovalue,
@@ -183,18 +199,23 @@ def _step(hierarchy, isovalues, method, n_cells, s):
         p1 = p0 + (s1 / scale[:, 0])[:, None] * dq / scale
         at_entry, k_entry = _iso_face(corners, p0, isovalues)
         at_exit, k_exit = _iso_face(corners, p1, isovalues)
+        at_entry = at_entry | jnp.any(crack, axis=-1)
+        k_entry = jnp.where(jnp.any(crack, axis=-1), jnp.argmax(crack, axis=-1), k_entry)
+        at_exit = at_exit | jnp.any(missed, axis=-1)
+        k_exit = jnp.where(jnp.any(missed, axis=-1), jnp.argmax(missed, axis=-1), k_exit)
         s_root = jnp.where(at_entry, 0.0, jnp.where(found, s_root, s1))
         which = jnp.where(at_entry, k_entry, jnp.where(found, which, k_exit))
         found = found | at_entry | at_exit
         # a constant cell has no surface (its level set is all of it or nothing)
         varying = jnp.max(corners, axis=-1) > jnp.min(corners, axis=-1)
         found = found & at_cell & varying
-        return jnp.where(found, t + s_root, jnp.inf), found, which
+        side = jnp.where(at_cell[:, None], side, s["side"])
+        return jnp.where(found, t + s_root, jnp.inf), found, which.astype(jnp.int32), side
 
-    t_root, found, which = jax.lax.cond(
+    t_root, found, which, side = jax.lax.cond(
         jnp.any(at_cell), intersect_cells,
         lambda _: (jnp.full(p, jnp.inf, jnp.float32), jnp.zeros(p, bool),
-                   jnp.full(p, -1, jnp.int32)), None)
+                   jnp.full(p, -1, jnp.int32), s["side"]), None)
     outside = jnp.any((v_next < 0) | (v_next >= n_cells), axis=-1)
     moving = live & ~found
     t_new = jnp.where(moving, jnp.maximum(t_out, t), t)
@@ -206,4 +227,4 @@ def _step(hierarchy, isovalues, method, n_cells, s):
         which=jnp.where(found, which, s["which"]),
         cell=jnp.where(found[:, None], lo, s["cell"]),
         size=jnp.where(found, size, s["size"]),
-        steps=s["steps"] + live.astype(jnp.int32), extra=extra)
+        steps=s["steps"] + live.astype(jnp.int32), side=side, extra=extra)
