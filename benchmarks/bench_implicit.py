@@ -37,10 +37,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import pathlib
-import platform
-import statistics
 import sys
 import time
 import traceback
@@ -53,9 +50,12 @@ import jaxiso as ji
 from jaxiso.render._scene import default_tile
 
 ROOT = pathlib.Path(__file__).resolve().parent
+sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT.parent / "tests"))
+import _common as common  # noqa: E402
 import reference64  # noqa: E402
 import reference_trace64  # noqa: E402
+from _common import compile_cell, fmt, print_table  # noqa: E402
 
 SECTIONS = ("table61", "table62", "packets", "sweep")
 ARITHMETICS = ("interval", "affine")
@@ -155,15 +155,9 @@ class Bench:
         if ex != size:
             rays = pad_rays(rays, self.rays(name, ex, tile).origin.shape[0], scene)
         e = jnp.float32(eps)
-        t0 = time.perf_counter()
-        hits = jax.block_until_ready(exe(scene, rays, e))  # warm-up
-        warm_s = time.perf_counter() - t0
-        times = []
-        for _ in range(self.repeats if timed and warm_s <= self.slow_s else 0):
-            t0 = time.perf_counter()
-            hits = jax.block_until_ready(exe(scene, rays, e))
-            times.append(time.perf_counter() - t0)
-        run_s = (statistics.median(times) if times else warm_s) if timed else None
+        hits, timing = common.time_calls(lambda: exe(scene, rays, e), self.repeats,
+                                         self.slow_s, timed)
+        run_s = timing["run_s"] if timed else None
         hits = jax.tree_util.tree_map(lambda a: a[:m], hits)
         n = size * size
         steps = np.asarray(hits.steps, np.int64)  # tile order, padded to whole tiles
@@ -181,7 +175,7 @@ class Bench:
         row = dict(surface=name, method=method, arithmetic=arithmetic, eps=float(eps),
                    size=size, tile=tile, packet=packet, lanes=lanes, **extra,
                    compile_s=compile_s, compile_cached=cached, run_s=run_s,
-                   warmup_s=warm_s, repeats_used=len(times),
+                   warmup_s=timing["warmup_s"], repeats_used=timing["repeats_used"],
                    mrays_per_s=(n / run_s / 1e6) if run_s else None,
                    steps_mean=float(steps.mean()), steps_max=int(steps.max()),
                    steps_total=int(steps.sum()), hit_fraction=float(hit.mean()),
@@ -245,28 +239,8 @@ def accuracy(hit, t, t_ref):
 # ---------------------------------------------------------------------------- printing
 
 
-def fmt(v, spec=".3f"):
-    if v is None:
-        return "-"
-    if isinstance(v, str):
-        return v
-    return format(v, spec)
-
-
-def print_table(headers, rows):
-    widths = [max(len(h), *(len(r[i]) for r in rows)) if rows else len(h)
-              for i, h in enumerate(headers)]
-    line = "  ".join(h.rjust(w) for h, w in zip(headers, widths))
-    print(line)
-    print("-" * len(line))
-    for r in rows:
-        print("  ".join(c.rjust(w) for c, w in zip(r, widths)))
-    print()
-
-
 def work_cells(r):
-    return [fmt(r["compile_s"], ".1f") + ("*" if r["compile_cached"] else ""),
-            fmt(r["run_s"]), fmt(r["mrays_per_s"]), fmt(r["steps_mean"], ".1f"),
+    return [compile_cell(r), fmt(r["run_s"]), fmt(r["mrays_per_s"]), fmt(r["steps_mean"], ".1f"),
             str(r["steps_max"]), fmt(r["hit_fraction"]), fmt(r["exhausted"], "d"),
             fmt(r["lane_utilisation"], ".2f"), fmt(r["ns_per_step"], ".0f")]
 
@@ -514,15 +488,8 @@ def arith_ns_per_box(arithmetic, surface="barth_sextic"):
 # ---------------------------------------------------------------------------- charts
 
 
-def charts(result, out_dir, backend):
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib not installed (pip install -e '.[bench]'): no charts")
-        return []
-    paths = []
+def charts(plt, save, result):
+    """Draws the charts of `result`; save(fig, name) writes each (`common.save_charts`)."""
     if "sweep" in result:
         names = sorted({r["surface"] for r in result["sweep"]["rows"]})
         fig, axes = plt.subplots(1, len(names), figsize=(6.5 * len(names), 5), squeeze=False)
@@ -548,23 +515,15 @@ def charts(result, out_dir, backend):
                          f"..{log2_label(min(eps))}; sampling: samples")
             ax.grid(True, which="both", alpha=0.3)
             ax.legend(fontsize=7)
-        fig.tight_layout()
-        p = out_dir / f"implicit_{backend}_sweep.png"
-        fig.savefig(p, dpi=110)
-        plt.close(fig)
-        paths.append(p)
+        save(fig, "sweep")
     if "packets" in result:
-        rows = result["packets"]["rows"]
+        pk = result["packets"]
         fig, ax = plt.subplots(figsize=(8, 4))
-        ax.barh([r["label"] for r in rows], [r["mrays_per_s"] for r in rows])
+        ax.barh([r["label"] for r in pk["rows"]], [r["mrays_per_s"] for r in pk["rows"]])
         ax.set_xlabel("Mrays/s")
-        ax.set_title(f"barth_sextic IA t-bisection 2^-11, {result['packets']['size']}^2")
+        ax.set_title(f"barth_sextic IA t-bisection 2^-11, {pk['size']}^2")
         ax.invert_yaxis()
-        fig.tight_layout()
-        p = out_dir / f"implicit_{backend}_packets.png"
-        fig.savefig(p, dpi=110)
-        plt.close(fig)
-        paths.append(p)
+        save(fig, "packets")
     if "table61" in result:
         summ = result["table61"]["summary"]
         fig, ax = plt.subplots(figsize=(10, 4))
@@ -576,12 +535,7 @@ def charts(result, out_dir, backend):
         ax.set_yscale("log")
         ax.set_title(f"t-bisection, eps 2^-11, {result['table61']['size']}^2")
         ax.legend()
-        fig.tight_layout()
-        p = out_dir / f"implicit_{backend}_table61.png"
-        fig.savefig(p, dpi=110)
-        plt.close(fig)
-        paths.append(p)
-    return paths
+        save(fig, "table61")
 
 
 # ---------------------------------------------------------------------------- main
@@ -612,78 +566,24 @@ def main(argv=None):
     p.add_argument("--sweep-size", type=int, default=128)
     p.add_argument("--names", default=None,
                    help="comma-separated Table 6.1 surfaces (default: the whole catalogue)")
-    p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--slow-s", type=float, default=2.0,
-                   help="an entry whose warm-up call takes longer is timed by it alone")
-    p.add_argument("--quick", action="store_true", help="tiny smoke run (< 60 s)")
-    p.add_argument("--only", default=",".join(SECTIONS),
-                   help="comma-separated subset of " + ",".join(SECTIONS))
-    p.add_argument("--out", default=str(ROOT / "results"))
-    args = p.parse_args(argv)
-    only = [s.strip() for s in args.only.split(",") if s.strip()]
-    bad = sorted(set(only) - set(SECTIONS))
-    if bad:
-        p.error(f"unknown section(s) {bad}; choose from {SECTIONS}")
-    if args.repeats < 1:
-        p.error("--repeats must be >= 1")
+    args, only = common.parse_args(p, argv, SECTIONS, ROOT / "results")
     if args.names:
         unknown = sorted(set(args.names.split(",")) - set(ji.surfaces.names()))
         if unknown:
             p.error(f"unknown surface(s) {unknown}")
     cfg = config(args)
-    t_start = time.perf_counter()
-    device = jax.devices()[0]
-    backend = jax.default_backend()
-    out_dir = pathlib.Path(args.out)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    out_path = out_dir / f"implicit_{backend}.json"
-    print(f"jax {jax.__version__}, {backend} ({device.device_kind}), {os.cpu_count()} CPUs, "
-          f"median of {args.repeats} after a warm-up (entries slower than {args.slow_s} s: "
-          f"the warm-up call alone){', QUICK' if args.quick else ''}\n")
+    run = common.Run("implicit", args, only, cfg, default=float, numpy_version=False)
     b = Bench(args.repeats, args.slow_s)
-    result = dict(benchmark="implicit", jax_version=jax.__version__,
-                  jaxiso_version=ji.__version__, backend=backend,
-                  device_kind=device.device_kind, device_count=jax.device_count(),
-                  cpu_count=os.cpu_count(), platform=platform.platform(),
-                  processor=platform.processor(), python=platform.python_version(),
-                  quick=args.quick, repeats=args.repeats, slow_s=args.slow_s,
-                  sections=only, config=cfg, errors={},
-                  timing="compile: AOT lower+compile; run: median of `repeats` calls after "
-                         "one warm-up call (entries whose warm-up exceeds slow_s: the "
-                         "warm-up call), block_until_ready; Mrays/s = pixels / run s")
-
-    def save():
-        result["total_s"] = time.perf_counter() - t_start
-        out_path.write_text(json.dumps(result, indent=1, default=float))
-
     funcs = dict(table61=table61, table62=table62, packets=packets, sweep=sweep)
-    for sec in SECTIONS:
-        if sec in only:
-            t0 = time.perf_counter()
-            try:
-                result[sec] = funcs[sec](b, cfg)
-            except Exception as e:  # keep the other sections' figures
-                traceback.print_exc()
-                result["errors"][sec] = f"{type(e).__name__}: {e}"
-                print(f"  {sec} FAILED: {type(e).__name__}: {str(e)[:200]}\n")
-                continue
-            result[sec]["section_s"] = time.perf_counter() - t0
-            print(f"  ({sec}: {result[sec]['section_s']:.0f} s)\n")
-            save()
+    run.sections(SECTIONS, lambda sec: funcs[sec](b, cfg))
+    result = run.result
     try:
         result["target"] = target(b, cfg, result)
     except Exception as e:
         traceback.print_exc()
         result["errors"]["target"] = f"{type(e).__name__}: {e}"
         result["target"] = None
-    result["charts"] = [str(p) for p in charts(result, out_dir, backend)]
-    save()
-    print(f"wrote {out_path} ({result['total_s']:.0f} s)")
-    for c in result["charts"]:
-        print(f"wrote {c}")
-    if result["errors"]:
-        print(f"ERRORS in {sorted(result['errors'])}")
-    return result
+    return run.finish(charts)
 
 
 if __name__ == "__main__":

@@ -55,16 +55,12 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import json
 import math
 import os
 import pathlib
-import platform
 import statistics
 import subprocess
 import sys
-import time
-import traceback
 
 import jax
 import jax.numpy as jnp
@@ -85,8 +81,11 @@ from jaxiso.tetra._traverse import traverse
 
 ROOT = pathlib.Path(__file__).resolve().parent
 TETRA_SOURCES = ROOT.parent / "jaxiso" / "tetra"
+sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT.parent / "tests"))
+import _common as common  # noqa: E402
 import reference_tet64 as ref  # noqa: E402
+from _common import compile_cell, fmt, now, print_table, subsample  # noqa: E402
 
 SECTIONS = ("table51", "table53", "table54", "modalities", "timevarying", "peers",
             "accuracy")
@@ -178,17 +177,6 @@ def cube_mesh(n, field):
     return tet_mesh(points, tets, fn(points)), iso
 
 
-def available_gb():
-    """MemAvailable in GiB (inf where /proc/meminfo is missing)."""
-    try:
-        for line in pathlib.Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) / 2**20
-    except OSError:
-        pass
-    return math.inf
-
-
 def source_state():
     """The git commit, and a digest of jaxiso/tetra/*.py: the code these figures are of
     (the working tree may differ from the commit)."""
@@ -255,29 +243,17 @@ def tree_stats(bvh):
     return stats
 
 
-def signature(*args):
-    """Hashable pytree structure + leaf shapes/dtypes: the key of an AOT executable."""
-    leaves, treedef = jax.tree_util.tree_flatten(args)
-    return treedef, tuple((jnp.shape(x), jnp.result_type(x).str) for x in leaves)
-
-
 def on_device(tree):
     """The pytree's arrays as device arrays, so timed calls transfer nothing."""
     return jax.block_until_ready(jax.device_put(tree))
 
 
-def _now():
-    return time.perf_counter()
-
-
-class Bench:
+class Bench(common.TimedBench):
     """Caches meshes, BVHs and compiled executables; times calls and builds."""
 
     def __init__(self, repeats: int, slow_s: float, build_repeats: int):
-        self.repeats = repeats
-        self.slow_s = slow_s
+        super().__init__(repeats, slow_s)
         self.build_repeats = build_repeats
-        self._compiled = {}
         self._meshes = {}
         self._bvhs = {}
 
@@ -286,9 +262,9 @@ class Bench:
         """(TetMesh, isovalue, seconds to make it) of cube_tets(n) with a field, cached."""
         key = (n, field)
         if key not in self._meshes:
-            t0 = _now()
+            t0 = now()
             mesh, iso = cube_mesh(n, field)
-            self._meshes[key] = (mesh, iso, _now() - t0)
+            self._meshes[key] = (mesh, iso, now() - t0)
         return self._meshes[key]
 
     def build(self, mesh, method, *, key=None, leaf_size=8, step=0):
@@ -298,9 +274,9 @@ class Bench:
             return self._bvhs[(key, method)]
         times = []
         for _ in range(self.build_repeats):
-            t0 = _now()
+            t0 = now()
             bvh = build_bvh(mesh, method=method, leaf_size=leaf_size, step=step)
-            times.append(_now() - t0)
+            times.append(now() - t0)
             if times[-1] > 10.0:
                 break
         out = (bvh, statistics.median(times), times)
@@ -309,34 +285,6 @@ class Bench:
         return out
 
     # -- compile and time
-    def compiled(self, kind, fn, *args):
-        """(executable, compile s, cached) of jit(fn) for these argument shapes."""
-        key = (kind, signature(*args))
-        if key in self._compiled:
-            exe, s = self._compiled[key]
-            return exe, s, True
-        t0 = _now()
-        exe = jax.jit(fn).lower(*args).compile()
-        self._compiled[key] = (exe, _now() - t0)
-        return exe, self._compiled[key][1], False
-
-    def timed(self, call, timed=True):
-        """(output, timing) of a no-argument call; timing: run_s (wall), cpu_s (this
-        process's CPU time over all its threads, the same calls: less sensitive than wall
-        time to other processes on a shared machine), warmup_s, repeats_used."""
-        t0, c0 = _now(), time.process_time()
-        out = jax.block_until_ready(call())
-        warm, warm_cpu = _now() - t0, time.process_time() - c0
-        times, cpu = [], []
-        for _ in range(self.repeats if timed and warm <= self.slow_s else 0):
-            t0, c0 = _now(), time.process_time()
-            out = jax.block_until_ready(call())
-            times.append(_now() - t0)
-            cpu.append(time.process_time() - c0)
-        return out, dict(run_s=statistics.median(times) if times else warm,
-                         cpu_s=statistics.median(cpu) if cpu else warm_cpu,
-                         warmup_s=warm, repeats_used=len(times))
-
     def render_exe(self, scene, cam, shading):
         """compiled(...) of jit(render) with a constant `shading` (a module constant: the
         executables are cached by its id)."""
@@ -375,29 +323,7 @@ class Bench:
                 raster_order(hits.t, size, tile).astype(np.float64))
 
 
-# ---------------------------------------------------------------------------- printing
-
-
-def fmt(v, spec=".3f"):
-    if v is None:
-        return "-"
-    if isinstance(v, str):
-        return v
-    return format(v, spec)
-
-
-def print_table(headers, rows):
-    widths = [max([len(h)] + [len(r[i]) for r in rows]) for i, h in enumerate(headers)]
-    line = "  ".join(h.rjust(w) for h, w in zip(headers, widths))
-    print(line)
-    print("-" * len(line))
-    for r in rows:
-        print("  ".join(c.rjust(w) for c, w in zip(r, widths)))
-    print()
-
-
-def compile_cell(r):
-    return fmt(r["compile_s"], ".1f") + ("*" if r["compile_cached"] else "")
+# ---------------------------------------------------------------------------- depth error
 
 
 def depth_stats(hit, t, t_ref):
@@ -478,14 +404,14 @@ def table53(b, cfg):
         n_tets = k**3 * tets.shape[0]
         # about 1 KB per tet at peak (float64 validation, numpy build, device copies)
         need_gb = 1e3 * n_tets / 2**30
-        if available_gb() < need_gb:
+        if common.available_gb() < need_gb:
             skipped.append(f"k={k}: {n_tets} tets need about {need_gb:.1f} GiB, "
-                           f"{available_gb():.1f} GiB available")
+                           f"{common.available_gb():.1f} GiB available")
             continue
-        t0 = _now()
+        t0 = now()
         p, t, v = data.replicate(points, tets, values, k)
         mesh = tet_mesh(p, t, v)
-        mesh_s = _now() - t0
+        mesh_s = now() - t0
         bvh, build_s, builds = b.build(mesh, "bih")
         scene = on_device(TetIsosurface(mesh, iso, bvh=bvh))
         cam = camera(view(p.min(axis=0), p.max(axis=0)), size)
@@ -640,10 +566,10 @@ def timevarying(b, cfg):
             compile_s=compile_s, repeats_used=timing["repeats_used"])
         times, rebuilt = [], []
         for k in range(1, steps):
-            t0 = _now()
+            t0 = now()
             rebuilt.append(on_device(TetIsosurface(
                 mesh, iso, bvh=build_bvh(mesh, method=method, step=k), time_step=k)))
-            times.append(_now() - t0)
+            times.append(now() - t0)
         add(method, "time step", "rebuild (numpy build + scene)", statistics.median(times),
             rebuilt[0])
         del rebuilt, refit_scene
@@ -656,13 +582,13 @@ def timevarying(b, cfg):
             refit_scene, timing = b.timed(lambda: exe(base, q))
             add(method, change, "with_points (jit refit)", timing["run_s"], refit_scene,
                 compile_s=compile_s, repeats_used=timing["repeats_used"])
-            t0 = _now()
+            t0 = now()
             moved_mesh = mesh.with_points(moved)
-            mesh_s = _now() - t0
-            t0 = _now()
+            mesh_s = now() - t0
+            t0 = now()
             refit(bvh, moved_mesh)
             rows.append(dict(method=method, change=change, how="refit (numpy)",
-                             seconds=_now() - t0, render_s=None, render_cpu_s=None,
+                             seconds=now() - t0, render_s=None, render_cpu_s=None,
                              nodes_mean=None, leaves_mean=None, hit_fraction=None,
                              mesh_s=mesh_s))
             new_bvh, rebuild_s, _ = b.build(moved_mesh, method)
@@ -745,13 +671,7 @@ def vtk_contour(grid, iso):
     from vtkmodules.util.numpy_support import vtk_to_numpy
     from vtkmodules.vtkFiltersCore import vtkContourFilter, vtkTriangleFilter
 
-    cf = vtkContourFilter()
-    cf.SetInputData(grid)
-    cf.SetValue(0, float(iso))
-    cf.ComputeNormalsOff()
-    cf.ComputeScalarsOff()
-    cf.Update()
-    poly = cf.GetOutput()
+    poly = common.vtk_isosurface(vtkContourFilter(), grid, iso, "Normals", "Scalars")
     polys = poly.GetPolys()
     if np.any(np.diff(vtk_to_numpy(polys.GetOffsetsArray())) != 3):
         tri = vtkTriangleFilter()  # contours of tets are triangles; this is a safeguard
@@ -765,25 +685,6 @@ def vtk_contour(grid, iso):
     return verts, faces
 
 
-def mesh_raycast(verts, faces, o, d):
-    """open3d ray casting: (t [N] float64 (inf: miss), normals [N, 3], build + first cast
-    s, second cast s). The BVH is built lazily by the first cast."""
-    import open3d as o3d
-
-    t0 = _now()
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(verts, np.float32)),
-                        o3d.core.Tensor(np.ascontiguousarray(faces, np.uint32)))
-    rays = o3d.core.Tensor(np.ascontiguousarray(np.concatenate([o, d], axis=1), np.float32))
-    ans = scene.cast_rays(rays)
-    t_hit = ans["t_hit"].numpy()
-    first_s = _now() - t0
-    t0 = _now()
-    ans = scene.cast_rays(rays)
-    again_s = _now() - t0
-    return t_hit.astype(np.float64), ans["primitive_normals"].numpy(), first_s, again_s
-
-
 def lambert(t, normals):
     """A two-sided Lambert image [N, 3] of mesh hits (the peer's shading stage)."""
     light = np.array([0.45, 0.35, 0.82], np.float32)
@@ -791,14 +692,6 @@ def lambert(t, normals):
     shade = 0.18 + 0.75 * np.abs(normals @ light)
     col = shade[:, None] * np.array([0.85, 0.55, 0.25], np.float32)
     return np.where(np.isfinite(t)[:, None], col, 1.0)
-
-
-def subsample(size, ref_size):
-    """Row/column indices of a ref_size^2 regular pixel subsample of a size^2 image."""
-    if ref_size >= size:
-        return np.arange(size)
-    stride = size / ref_size
-    return (np.arange(ref_size) * stride + stride / 2).astype(np.int64)
 
 
 def peers(b, cfg):
@@ -816,11 +709,11 @@ def peers(b, cfg):
     idx = subsample(size, ref_size)
     pix = (idx[:, None] * size + idx[None, :]).reshape(-1)
     m = idx.size
-    t0 = _now()
+    t0 = now()
     t_ref, _, _, _ = ref.first_hits(mesh.points, mesh.tets, mesh.values[0],
                                     o32[pix].astype(np.float64), d32[pix].astype(np.float64),
                                     PEER_NEW_ISO)
-    ref_s = _now() - t0
+    ref_s = now() - t0
     rows, skipped = [], []
     # jaxiso: build and compile once, then an isovalue change costs one render
     bvh, build_s, _ = b.build(mesh, "bih", key=(n, "wave"))
@@ -840,17 +733,17 @@ def peers(b, cfg):
         skipped.append("VTK contour + open3d: " + (versions.get("vtk_error")
                                                    or versions.get("open3d_error", "")))
     else:
-        t0 = _now()
+        t0 = now()
         grid = vtk_grid(mesh.points, mesh.tets, mesh.values[0])
-        wrap_s = _now() - t0
+        wrap_s = now() - t0
         vtk_contour(grid, PEER_OLD_ISO)  # the old isovalue's image came first
-        t0 = _now()
+        t0 = now()
         verts, faces = vtk_contour(grid, PEER_NEW_ISO)
-        contour_s = _now() - t0
-        t_all, normals, cast_s, again_s = mesh_raycast(verts, faces, o32, d32)
-        t0 = _now()
+        contour_s = now() - t0
+        t_all, normals, cast_s, again_s = common.mesh_raycast(verts, faces, o32, d32)
+        t0 = now()
         lambert(t_all, normals)
-        shade_s = _now() - t0
+        shade_s = now() - t0
         t_sub = t_all[pix]
         rows.append(dict(pipeline="VTK contour + open3d", image_s=contour_s + cast_s + shade_s,
                          once=dict(wrap_s=wrap_s),
@@ -886,9 +779,9 @@ def accuracy(b, cfg):
     rows = []
     for field in cfg["acc_fields"]:
         mesh, iso, _ = b.mesh(n, field)
-        t0 = _now()
+        t0 = now()
         t_ref, _, _, _ = ref.first_hits(mesh.points, mesh.tets, mesh.values[0], o64, d64, iso)
-        ref_s = _now() - t0
+        ref_s = now() - t0
         for method in METHODS:
             bvh, _, _ = b.build(mesh, method, key=(n, field))
             scene = on_device(TetIsosurface(mesh, iso, bvh=bvh))
@@ -907,23 +800,8 @@ def accuracy(b, cfg):
 # ---------------------------------------------------------------------------- charts
 
 
-def charts(result, out_dir, backend):
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib not installed (pip install -e '.[bench]'): no charts")
-        return []
-    paths = []
-
-    def save(fig, name):
-        fig.tight_layout()
-        p = out_dir / f"tetra_{backend}_{name}.png"
-        fig.savefig(p, dpi=110)
-        plt.close(fig)
-        paths.append(p)
-
+def charts(plt, save, result):
+    """Draws the charts of `result`; save(fig, name) writes each (`common.save_charts`)."""
     if result.get("table51", {}).get("rows"):
         rows = result["table51"]["rows"]
         fig, axes = plt.subplots(1, 2, figsize=(11, 4))
@@ -1004,7 +882,6 @@ def charts(result, out_dir, backend):
         ax.invert_yaxis()
         ax.set_title(f"peers, {result['peers']['tets']} tets, {result['peers']['size']}^2")
         save(fig, "peers")
-    return paths
 
 
 # ---------------------------------------------------------------------------- main
@@ -1047,84 +924,24 @@ def main(argv=None):
                    help="pixel subsample edge for the peers' depth error")
     p.add_argument("--acc-size", type=int, default=64, help="accuracy image size")
     p.add_argument("--acc-n", type=int, default=16, help="cube_tets n of the accuracy meshes")
-    p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--build-repeats", type=int, default=3)
-    p.add_argument("--slow-s", type=float, default=2.0,
-                   help="an entry whose warm-up call takes longer is timed by it alone")
-    p.add_argument("--quick", action="store_true", help="tiny smoke run (< 60 s)")
-    p.add_argument("--only", default=",".join(SECTIONS),
-                   help="comma-separated subset of " + ",".join(SECTIONS))
-    p.add_argument("--out", default=str(ROOT / "results"))
-    args = p.parse_args(argv)
-    only = [s.strip() for s in args.only.split(",") if s.strip()]
-    bad = sorted(set(only) - set(SECTIONS))
-    if bad:
-        p.error(f"unknown section(s) {bad}; choose from {SECTIONS}")
-    if args.repeats < 1 or args.build_repeats < 1:
-        p.error("--repeats and --build-repeats must be >= 1")
+    args, only = common.parse_args(p, argv, SECTIONS, ROOT / "results",
+                                   repeat_flags=("--repeats", "--build-repeats"))
     cfg = config(args)
-    t_start = _now()
-    device = jax.devices()[0]
-    backend = jax.default_backend()
-    out_dir = pathlib.Path(args.out)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    out_path = out_dir / f"tetra_{backend}.json"
     load = load_average()
-    print(f"jax {jax.__version__}, {backend} ({device.device_kind}), {os.cpu_count()} CPUs, "
-          f"load average {load}, median of {args.repeats} after a warm-up (entries slower "
-          f"than {args.slow_s} s: the warm-up call alone){', QUICK' if args.quick else ''}\n")
+    run = common.Run("tetra", args, only, cfg, header_note=f"load average {load}, ",
+                     stamp=lambda result: result.update(load_average_end=load_average()),
+                     load_average_start=load, source=source_state(),
+                     timing=common.TIMING + "; builds: median of build_repeats numpy builds")
     b = Bench(args.repeats, args.slow_s, cfg["build_repeats"])
-    result = dict(benchmark="tetra", jax_version=jax.__version__,
-                  jaxiso_version=ji.__version__, numpy_version=np.__version__,
-                  backend=backend, device_kind=device.device_kind,
-                  device_count=jax.device_count(), cpu_count=os.cpu_count(),
-                  platform=platform.platform(), processor=platform.processor(),
-                  python=platform.python_version(), quick=args.quick, repeats=args.repeats,
-                  slow_s=args.slow_s, sections=only, config=cfg, errors={},
-                  load_average_start=load, source=source_state(),
-                  timing="compile: AOT lower+compile; run: median of `repeats` calls after "
-                         "one warm-up call (entries whose warm-up exceeds slow_s: the "
-                         "warm-up call), block_until_ready; Mrays/s = pixels / run s; "
-                         "builds: median of build_repeats numpy builds")
 
-    def save():
-        result["total_s"] = _now() - t_start
-        result["load_average_end"] = load_average()
-        out_path.write_text(json.dumps(result, indent=1, default=_json_default))
+    def load_note(section):
+        section["load_average"] = load_average()
+        return f", load average {section['load_average']}"
 
     funcs = dict(table51=table51, table53=table53, table54=table54, modalities=modalities,
                  timevarying=timevarying, peers=peers, accuracy=accuracy)
-    for sec in SECTIONS:
-        if sec in only:
-            t0 = _now()
-            try:
-                result[sec] = funcs[sec](b, cfg)
-            except Exception as e:  # keep the other sections' figures
-                traceback.print_exc()
-                result["errors"][sec] = f"{type(e).__name__}: {e}"
-                print(f"  {sec} FAILED: {type(e).__name__}: {str(e)[:200]}\n")
-                continue
-            result[sec]["section_s"] = _now() - t0
-            result[sec]["load_average"] = load_average()
-            print(f"  ({sec}: {result[sec]['section_s']:.0f} s, load average "
-                  f"{result[sec]['load_average']})\n", flush=True)
-            save()
-    result["charts"] = [str(c) for c in charts(result, out_dir, backend)]
-    save()
-    print(f"wrote {out_path} ({result['total_s']:.0f} s)")
-    for c in result["charts"]:
-        print(f"wrote {c}")
-    if result["errors"]:
-        print(f"ERRORS in {sorted(result['errors'])}")
-    return result
-
-
-def _json_default(x):
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, np.floating | np.ndarray):
-        return x.tolist()
-    return str(x)
+    run.sections(SECTIONS, lambda sec: funcs[sec](b, cfg), load_note)
+    return run.finish(charts)
 
 
 if __name__ == "__main__":

@@ -44,18 +44,10 @@ Writes ``<out>/volume_<backend>.json`` and, when matplotlib is installed, charts
 from __future__ import annotations
 
 import argparse
-import json
-import math
-import os
 import pathlib
-import platform
 import statistics
 import sys
-import time
-import traceback
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 import jaxiso as ji
@@ -64,8 +56,11 @@ from jaxiso.volume import MacrocellGrid, OctreeVolume, VolumeIsosurface, VolumeS
 from jaxiso.volume import data as vdata
 
 ROOT = pathlib.Path(__file__).resolve().parent
+sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT.parent / "tests"))
+import _common as common  # noqa: E402
 import reference_volume64 as ref  # noqa: E402
+from _common import compile_cell, fmt, now, print_table, subsample  # noqa: E402
 
 SECTIONS = ("table31", "table32", "packets", "lod", "peers", "accuracy")
 RENDER_TILE = VolumeIsosurface.preferred_tile  # the packet edge render uses for volumes
@@ -159,34 +154,14 @@ def nibabel_example():
     return (arr[..., 0] if arr.ndim == 4 else arr), meta["spacing"]
 
 
-def available_gb():
-    """MemAvailable in GiB (inf where /proc/meminfo is missing)."""
-    try:
-        for line in pathlib.Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) / 2**20
-    except OSError:
-        pass
-    return math.inf
-
-
 # ---------------------------------------------------------------------------- runner
 
 
-def signature(*args):
-    """Hashable pytree structure + leaf shapes/dtypes: the key of an AOT executable."""
-    leaves, treedef = jax.tree_util.tree_flatten(args)
-    return treedef, tuple((jnp.shape(x), jnp.result_type(x).str, getattr(x, "weak_type", False))
-                          for x in leaves)
-
-
-class Bench:
+class Bench(common.TimedBench):
     """Caches data, volumes and compiled executables; times calls."""
 
     def __init__(self, repeats: int, slow_s: float):
-        self.repeats = repeats
-        self.slow_s = slow_s
-        self._compiled = {}
+        super().__init__(repeats, slow_s)
         self._arrays = {}
         self._octrees = {}
 
@@ -195,9 +170,9 @@ class Bench:
         """(array, seconds to generate) of the mixing layer, cached."""
         key = ("mixing", n, time, quantize)
         if key not in self._arrays:
-            t0 = _now()
+            t0 = now()
             a = vdata.mixing(n, time=time, quantize=quantize)
-            self._arrays[key] = (a, _now() - t0)
+            self._arrays[key] = (a, now() - t0)
         return self._arrays[key]
 
     def mixing_octree(self, n, *, time=MIXING_TIME):
@@ -206,41 +181,18 @@ class Bench:
         if key not in self._octrees:
             a, _ = self.mixing(n, time=time)
             sp, org = geometry("mixing", a.shape)
-            t0 = _now()
+            t0 = now()
             vol = OctreeVolume.from_array(a, spacing=sp, origin=org, progress=False)
-            self._octrees[key] = (vol, _now() - t0)
+            self._octrees[key] = (vol, now() - t0)
         return self._octrees[key]
 
     # -- compile and time
-    def compiled(self, kind, fn, *args):
-        """(executable, compile s, cached) of jit(fn) for these argument shapes."""
-        key = (kind, signature(*args))
-        if key in self._compiled:
-            exe, s = self._compiled[key]
-            return exe, s, True
-        t0 = _now()
-        exe = jax.jit(fn).lower(*args).compile()
-        self._compiled[key] = (exe, _now() - t0)
-        return exe, self._compiled[key][1], False
-
     def render_exe(self, scene, cam, shading, tile=RENDER_TILE):
         """compiled(...) of jit(render) with a constant `shading` (a Shading checks its
         fields on construction, so it cannot be a traced argument)."""
         return self.compiled(("render", tile, id(shading)),
                              lambda s, c: ji.render(s, c, shading=shading, tile=tile),
                              scene, cam)
-
-    def timed(self, call, timed=True):
-        """(output, run s, warm-up s, repeats used) of a no-argument call."""
-        t0 = _now()
-        out = jax.block_until_ready(call())
-        warm = _now() - t0
-        times = []
-        for _ in range(self.repeats if timed and warm <= self.slow_s else 0):
-            t0 = _now()
-            out = jax.block_until_ready(call())
-            times.append(_now() - t0)
-        return out, (statistics.median(times) if times else warm), warm, len(times)
 
     def trace(self, scene, cam, tile=None, timed=True):
         """jit(intersect) of a camera's rays in tile x tile packets, or (tile None) the
@@ -255,7 +207,8 @@ class Bench:
         exe, compile_s, cached = self.compiled(
             ("intersect", tile), lambda s, r: ji.intersect(s, r, packet=packet, **opts),
             scene, rays)
-        hits, run_s, warm_s, used = self.timed(lambda: exe(scene, rays), timed)
+        hits, timing = self.timed(lambda: exe(scene, rays), timed)
+        run_s = timing["run_s"]
 
         def image(a):
             if tile is None:
@@ -269,13 +222,9 @@ class Bench:
             counters["lane_utilisation"] = None
         row = dict(tile=tile, lanes=None if tile else RENDER_LANES, packet=packet, pixels=n,
                    compile_s=compile_s, compile_cached=cached, run_s=run_s,
-                   warmup_s=warm_s, repeats_used=used, mrays_per_s=n / run_s / 1e6,
-                   hit_fraction=float(hit.mean()), **counters)
+                   warmup_s=timing["warmup_s"], repeats_used=timing["repeats_used"],
+                   mrays_per_s=n / run_s / 1e6, hit_fraction=float(hit.mean()), **counters)
         return row, hit, image(hits.t).astype(np.float64), image(hits.normal)
-
-
-def _now():
-    return time.perf_counter()
 
 
 def work(steps, packet, run_s):
@@ -306,30 +255,8 @@ def depth_stats(hit, t, hit_ref, t_ref, voxel):
 # ---------------------------------------------------------------------------- printing
 
 
-def fmt(v, spec=".3f"):
-    if v is None:
-        return "-"
-    if isinstance(v, str):
-        return v
-    return format(v, spec)
-
-
 def mb(nbytes):
     return f"{nbytes / 2**20:.2f}M"
-
-
-def print_table(headers, rows):
-    widths = [max([len(h)] + [len(r[i]) for r in rows]) for i, h in enumerate(headers)]
-    line = "  ".join(h.rjust(w) for h, w in zip(headers, widths))
-    print(line)
-    print("-" * len(line))
-    for r in rows:
-        print("  ".join(c.rjust(w) for c, w in zip(r, widths)))
-    print()
-
-
-def compile_cell(r):
-    return fmt(r["compile_s"], ".1f") + ("*" if r["compile_cached"] else "")
 
 
 # ---------------------------------------------------------------------------- table31
@@ -339,10 +266,10 @@ def compression_row(label, arr, *, iso_range=None, variance=0.0, spacing=1.0, or
                     **info):
     """Build an octree; bytes, build seconds and the reconstruction error against the
     (clamped) input, computed here with numpy."""
-    t0 = _now()
+    t0 = now()
     vol = OctreeVolume.from_array(arr, spacing=spacing, origin=origin, iso_range=iso_range,
                                   variance=variance, progress=False)
-    build_s = _now() - t0
+    build_s = now() - t0
     expected = np.asarray(arr)
     if iso_range is not None:  # the bounds in the data's dtype, as a clamped array holds them
         expected = np.clip(expected, *(np.asarray(v).astype(expected.dtype) for v in iso_range))
@@ -385,9 +312,9 @@ def table31(b, cfg):
                                 time=cfg["time_steps"][-1], **geo)[0])
     rows.append(compression_row("mixing u8 lossy", q_last, variance=cfg["variances"][0],
                                 time=cfg["time_steps"][-1], **geo)[0])
-    t0 = _now()
+    t0 = now()
     seq = VolumeSequence.from_volumes(step_vols)
-    stack_s = _now() - t0
+    stack_s = now() - t0
     steps_label = f"{cfg['time_steps'][0]:g}-{cfg['time_steps'][-1]:g}"
     rows.append(dict(data="mixing u8 sequence", dtype="uint8", shape=[len(step_vols), n, n, n],
                      iso_range=None, variance=0.0, time=steps_label,
@@ -456,9 +383,9 @@ def table32(b, cfg):
     vol, build_s = b.mixing_octree(n)
     a, _ = b.mixing(n)
     sp, org = geometry("mixing", a.shape)
-    t0 = _now()
+    t0 = now()
     grid = MacrocellGrid.from_array(a, spacing=sp, origin=org, levels=(5, 3))
-    grid_build_s = _now() - t0
+    grid_build_s = now() - t0
     print(f"== Table 3.2 analog: mixing {n}^3 float32, isovalue {MIXING_ISO}, {size}x{size}, "
           f"{RENDER_LANES} persistent lanes; octree {mb(vol.nbytes)}, macrocell grid "
           f"(levels 2^5, 2^3, over the dense array) {mb(grid.nbytes)}")
@@ -654,33 +581,6 @@ def _vtk_version(mod):
     return mod.vtkVersion.GetVTKVersion() if hasattr(mod, "vtkVersion") else "?"
 
 
-def subsample(size, ref_size):
-    """Row/column indices of a ref_size^2 regular pixel subsample of a size^2 image."""
-    if ref_size >= size:
-        return np.arange(size)
-    stride = size / ref_size
-    return (np.arange(ref_size) * stride + stride / 2).astype(np.int64)
-
-
-def mesh_raycast(verts, faces, o, d):
-    """open3d ray casting of a triangle mesh: (t [N] (inf: miss), normals [N, 3], build +
-    first cast s, second cast s). The BVH is built lazily by the first cast."""
-    import open3d as o3d
-
-    t0 = _now()
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(verts, np.float32)),
-                        o3d.core.Tensor(np.ascontiguousarray(faces, np.uint32)))
-    rays = o3d.core.Tensor(np.ascontiguousarray(np.concatenate([o, d], axis=1), np.float32))
-    ans = scene.cast_rays(rays)
-    t_hit = ans["t_hit"].numpy()
-    first_s = _now() - t0
-    t0 = _now()
-    ans = scene.cast_rays(rays)
-    again_s = _now() - t0
-    return (t_hit.astype(np.float64), ans["primitive_normals"].numpy(), first_s, again_s)
-
-
 def lambert(t, normals):
     """A two-sided Lambert image [N, 3] of mesh hits (the peers' shading stage)."""
     shade = 0.18 + 0.75 * np.abs(normals @ LIGHT.astype(np.float32))
@@ -693,14 +593,14 @@ def peer_marching_cubes(a, iso, sp, org, o, d):
     (stage seconds, t [N])."""
     from skimage.measure import marching_cubes
 
-    t0 = _now()
+    t0 = now()
     verts, faces, _, _ = marching_cubes(a, iso, spacing=tuple(sp))
-    extract_s = _now() - t0
+    extract_s = now() - t0
     verts = verts + np.asarray(org)
-    t, normals, cast_s, again_s = mesh_raycast(verts, faces, o, d)
-    t0 = _now()
+    t, normals, cast_s, again_s = common.mesh_raycast(verts, faces, o, d)
+    t0 = now()
     lambert(t, normals)
-    shade_s = _now() - t0
+    shade_s = now() - t0
     return dict(extract_s=extract_s, cast_s=cast_s, shade_s=shade_s,
                 image_s=extract_s + cast_s + shade_s, cast_again_s=again_s,
                 triangles=int(faces.shape[0])), t
@@ -712,7 +612,7 @@ def peer_flying_edges(a, iso, sp, org, o, d):
     from vtkmodules.vtkCommonDataModel import vtkImageData
     from vtkmodules.vtkFiltersCore import vtkFlyingEdges3D
 
-    t0 = _now()
+    t0 = now()
     # VTK runs its first axis fastest: hand it the C-order array with the axes reversed
     # (no copy) and swap the mesh's coordinates back
     img = vtkImageData()
@@ -721,23 +621,17 @@ def peer_flying_edges(a, iso, sp, org, o, d):
     img.SetOrigin(*org[::-1])
     img.GetPointData().SetScalars(numpy_to_vtk(np.ascontiguousarray(a).reshape(-1),
                                                deep=False))
-    wrap_s = _now() - t0
-    t0 = _now()
-    fe = vtkFlyingEdges3D()
-    fe.SetInputData(img)
-    fe.SetValue(0, float(iso))
-    fe.ComputeNormalsOff()
-    fe.ComputeGradientsOff()
-    fe.ComputeScalarsOff()
-    fe.Update()
-    poly = fe.GetOutput()
+    wrap_s = now() - t0
+    t0 = now()
+    poly = common.vtk_isosurface(vtkFlyingEdges3D(), img, iso, "Normals", "Gradients",
+                                 "Scalars")
     verts = vtk_to_numpy(poly.GetPoints().GetData())[:, ::-1]
     faces = vtk_to_numpy(poly.GetPolys().GetConnectivityArray()).reshape(-1, 3)
-    extract_s = _now() - t0
-    t, normals, cast_s, again_s = mesh_raycast(verts, faces, o, d)
-    t0 = _now()
+    extract_s = now() - t0
+    t, normals, cast_s, again_s = common.mesh_raycast(verts, faces, o, d)
+    t0 = now()
     lambert(t, normals)
-    shade_s = _now() - t0
+    shade_s = now() - t0
     return dict(wrap_s=wrap_s, extract_s=extract_s, cast_s=cast_s, shade_s=shade_s,
                 image_s=wrap_s + extract_s + cast_s + shade_s, cast_again_s=again_s,
                 triangles=int(faces.shape[0])), t
@@ -784,32 +678,32 @@ def peers(b, cfg):
     for n in cfg["peer_sizes"]:
         # the array, the build's temporaries, the reference's float64 copy, the meshes
         need_gb = 40 * n**3 / 2**30
-        if available_gb() < need_gb:
+        if common.available_gb() < need_gb:
             skipped.append(f"{n}^3: needs about {need_gb:.0f} GiB, "
-                           f"{available_gb():.0f} GiB available")
+                           f"{common.available_gb():.0f} GiB available")
             continue
         a, gen_s = b.mixing(n)
         sp, org = geometry("mixing", a.shape)
         voxel = float(min(sp))
-        t0 = _now()
+        t0 = now()
         t_ref, hit_ref, _ = ref.first_hits(a, o_all[pix], d_all[pix], PEER_NEW_ISO,
                                            spacing=sp, origin=org)
-        ref_s = _now() - t0
+        ref_s = now() - t0
         # (a) jaxiso: build once, compile once, then isovalue changes cost one render
         vol, build_s = b.mixing_octree(n)
         scene = VolumeIsosurface(vol, MIXING_ISO)
         exe, compile_s, cached = b.render_exe(scene, cam, SHADING)
-        _, image_s, warm_s, used = b.timed(
-            lambda: exe(scene.with_isovalues(PEER_NEW_ISO), cam))
+        _, timing = b.timed(lambda: exe(scene.with_isovalues(PEER_NEW_ISO), cam))
         sub_exe, sub_compile_s, _ = b.compiled(
             ("intersect", RENDER_TILE),
             lambda s, rr: ji.intersect(s, rr, packet=RENDER_TILE**2), scene, sub_rays)
         hits = sub_exe(scene.with_isovalues(PEER_NEW_ISO), sub_rays)
         t_j = np.asarray(ji.from_tiles(hits.t, RENDER_TILE, m, m), np.float64).reshape(-1)
         row = dict(pipeline="jaxiso", n=n, voxels=n**3, gen_s=gen_s, build_s=build_s,
-                   compile_s=compile_s, compile_cached=cached, image_s=image_s,
-                   warmup_s=warm_s, repeats_used=used, octree_nbytes=vol.nbytes,
-                   ref_s=ref_s, ref_pixels=int(pix.size), subsample_compile_s=sub_compile_s,
+                   compile_s=compile_s, compile_cached=cached, image_s=timing["run_s"],
+                   warmup_s=timing["warmup_s"], repeats_used=timing["repeats_used"],
+                   octree_nbytes=vol.nbytes, ref_s=ref_s, ref_pixels=int(pix.size),
+                   subsample_compile_s=sub_compile_s,
                    **depth_stats(np.isfinite(t_j), t_j, hit_ref, t_ref, voxel))
         rows.append(row)
         o32, d32 = o_all.astype(np.float32), d_all.astype(np.float32)
@@ -891,9 +785,9 @@ def accuracy(b, cfg):
         iso = vdata.ISOVALUES[name]
         v = view(name, "far")
         o, d = ref.camera_rays(v["eye"], v["target"], v["up"], v["fov"], size, size)
-        t0 = _now()
+        t0 = now()
         t_ref, hit_ref, _ = ref.first_hits(arr, o, d, iso, spacing=sp, origin=org)
-        ref_s = _now() - t0
+        ref_s = now() - t0
         cam = camera(v, size)
         for method in ("neubauer", "analytic"):
             row, hit, t, _ = b.trace(VolumeIsosurface(vol, iso, method=method), cam)
@@ -916,23 +810,8 @@ def accuracy(b, cfg):
 # ---------------------------------------------------------------------------- charts
 
 
-def charts(result, out_dir, backend):
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib not installed (pip install -e '.[bench]'): no charts")
-        return []
-    paths = []
-
-    def save(fig, name):
-        fig.tight_layout()
-        p = out_dir / f"volume_{backend}_{name}.png"
-        fig.savefig(p, dpi=110)
-        plt.close(fig)
-        paths.append(p)
-
+def charts(plt, save, result):
+    """Draws the charts of `result`; save(fig, name) writes each (`common.save_charts`)."""
     if "table31" in result:
         rows = result["table31"]["rows"]
         fig, ax = plt.subplots(figsize=(9, 0.28 * len(rows) + 1.5))
@@ -1018,7 +897,6 @@ def charts(result, out_dir, backend):
         ax.legend(fontsize=7)
         ax.set_title(f"peers, {result['peers']['size']}^2 image")
         save(fig, "peers")
-    return paths
 
 
 # ---------------------------------------------------------------------------- main
@@ -1058,79 +936,16 @@ def main(argv=None):
                    help="pixel subsample edge for the peers' depth error")
     p.add_argument("--acc-size", type=int, default=96, help="accuracy image size")
     p.add_argument("--acc-volume", type=int, default=64, help="accuracy mixing grid")
-    p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--slow-s", type=float, default=2.0,
-                   help="an entry whose warm-up call takes longer is timed by it alone")
-    p.add_argument("--quick", action="store_true", help="tiny smoke run (< 60 s)")
-    p.add_argument("--only", default=",".join(SECTIONS),
-                   help="comma-separated subset of " + ",".join(SECTIONS))
-    p.add_argument("--out", default=str(ROOT / "results"))
-    args = p.parse_args(argv)
-    only = [s.strip() for s in args.only.split(",") if s.strip()]
-    bad = sorted(set(only) - set(SECTIONS))
-    if bad:
-        p.error(f"unknown section(s) {bad}; choose from {SECTIONS}")
-    if args.repeats < 1:
-        p.error("--repeats must be >= 1")
+    args, only = common.parse_args(p, argv, SECTIONS, ROOT / "results")
     cfg = config(args)
-    t_start = _now()
-    device = jax.devices()[0]
-    backend = jax.default_backend()
-    out_dir = pathlib.Path(args.out)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    out_path = out_dir / f"volume_{backend}.json"
-    print(f"jax {jax.__version__}, {backend} ({device.device_kind}), {os.cpu_count()} CPUs, "
-          f"median of {args.repeats} after a warm-up (entries slower than {args.slow_s} s: "
-          f"the warm-up call alone){', QUICK' if args.quick else ''}\n")
+    run = common.Run("volume", args, only, cfg)
     b = Bench(args.repeats, args.slow_s)
-    result = dict(benchmark="volume", jax_version=jax.__version__,
-                  jaxiso_version=ji.__version__, numpy_version=np.__version__,
-                  backend=backend, device_kind=device.device_kind,
-                  device_count=jax.device_count(), cpu_count=os.cpu_count(),
-                  platform=platform.platform(), processor=platform.processor(),
-                  python=platform.python_version(), quick=args.quick, repeats=args.repeats,
-                  slow_s=args.slow_s, sections=only, config=cfg, errors={},
-                  timing="compile: AOT lower+compile; run: median of `repeats` calls after "
-                         "one warm-up call (entries whose warm-up exceeds slow_s: the "
-                         "warm-up call), block_until_ready; Mrays/s = pixels / run s")
-
-    def save():
-        result["total_s"] = _now() - t_start
-        out_path.write_text(json.dumps(result, indent=1, default=_json_default))
-
     funcs = dict(table31=table31, table32=table32, packets=packets,
-                 lod=lambda b, cfg: lod(b, cfg, out_dir), peers=peers, accuracy=accuracy)
-    for sec in SECTIONS:
-        if sec in only:
-            t0 = _now()
-            try:
-                result[sec] = funcs[sec](b, cfg)
-            except Exception as e:  # keep the other sections' figures
-                traceback.print_exc()
-                result["errors"][sec] = f"{type(e).__name__}: {e}"
-                print(f"  {sec} FAILED: {type(e).__name__}: {str(e)[:200]}\n")
-                continue
-            result[sec]["section_s"] = _now() - t0
-            print(f"  ({sec}: {result[sec]['section_s']:.0f} s)\n", flush=True)
-            save()
-    result["charts"] = [str(c) for c in charts(result, out_dir, backend)]
-    save()
-    print(f"wrote {out_path} ({result['total_s']:.0f} s)")
-    for c in result["charts"]:
-        print(f"wrote {c}")
-    if "lod" in result:
-        print(f"wrote {result['lod']['difference_png']}")
-    if result["errors"]:
-        print(f"ERRORS in {sorted(result['errors'])}")
-    return result
-
-
-def _json_default(x):
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, np.floating | np.ndarray):
-        return x.tolist()
-    return str(x)
+                 lod=lambda b, cfg: lod(b, cfg, run.path.parent), peers=peers,
+                 accuracy=accuracy)
+    run.sections(SECTIONS, lambda sec: funcs[sec](b, cfg))
+    lod_png = [run.result["lod"]["difference_png"]] if "lod" in run.result else []
+    return run.finish(charts, more=lod_png)
 
 
 if __name__ == "__main__":

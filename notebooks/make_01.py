@@ -4,23 +4,10 @@ The notebook is stored without outputs; tests/test_notebooks.py executes it at a
 image size (JAXISO_NB_SIZE=24).
 """
 
-import pathlib
-import textwrap
+from _nbtools import ROW, TIMED, Notebook, heat, helpers, setup
 
-import nbformat
-from nbformat.v4 import new_code_cell, new_markdown_cell, new_notebook
-
-HERE = pathlib.Path(__file__).resolve().parent
-
-CELLS = []
-
-
-def md(text):
-    CELLS.append(new_markdown_cell(textwrap.dedent(text).strip()))
-
-
-def code(text):
-    CELLS.append(new_code_cell(textwrap.dedent(text).strip()))
+NOTEBOOK = Notebook("01_implicits.ipynb")
+md, code = NOTEBOOK.md, NOTEBOOK.code
 
 
 md("""
@@ -49,7 +36,7 @@ runs this notebook at 24). The first render of a new scene *compiles* (a few sec
 CPU); later renders that only change numbers (parameters, `w`, `eps`, camera) reuse it.
 """)
 
-code("""
+code(setup("""
 import os
 import time
 
@@ -60,38 +47,9 @@ from IPython.display import display
 
 import jaxiso as ji
 from jaxiso.implicit import csg
+""", "192"))
 
-SIZE = int(os.environ.get("JAXISO_NB_SIZE", "192"))
-print(f"jaxiso {ji.__version__}, jax {jax.__version__} on {jax.devices()[0].platform}, "
-      f"{SIZE}x{SIZE} images")
-""")
-
-code('''
-def row(*images, gap=4):
-    """Images side by side (white gaps): an `ji.Image`, so it shows inline."""
-    h = max(im.shape[0] for im in images)
-    parts = []
-    for i, im in enumerate(images):
-        im = np.asarray(im, np.float32)
-        if i:
-            parts.append(np.ones((h, gap, 3), np.float32))
-        pad = np.ones((h - im.shape[0], im.shape[1], 3), np.float32)
-        parts.append(np.concatenate([im, pad], axis=0))
-    return ji.Image(np.concatenate(parts, axis=1))
-
-
-def heat(values, vmax):
-    """A per-pixel count as an image: white (0) to dark red (>= vmax)."""
-    v = np.clip(np.asarray(values, np.float32) / vmax, 0.0, 1.0)[..., None]
-    return ji.Image((1.0 - v) + v * np.array([0.6, 0.05, 0.05], np.float32))
-
-
-def timed(fn, *args, **kwargs):
-    """(result, seconds); waits for the device."""
-    t = time.perf_counter()
-    out = jax.block_until_ready(fn(*args, **kwargs))
-    return out, time.perf_counter() - t
-''')
+code(helpers(ROW, heat("count"), TIMED))
 
 # ---------------------------------------------------------------------------------------
 md("""
@@ -383,10 +341,4 @@ isovalues (`f = 0` outside, `f = -4` inside; colours go by isovalue).
   the rays: see `examples/fit_superquadric.py`.
 """)
 
-nb = new_notebook(cells=CELLS, metadata={
-    "kernelspec": {"name": "python3", "display_name": "Python 3", "language": "python"},
-    "language_info": {"name": "python"},
-})
-nbformat.validate(nb)
-nbformat.write(nb, HERE / "01_implicits.ipynb")
-print(f"wrote {HERE / '01_implicits.ipynb'} ({len(CELLS)} cells)")
+NOTEBOOK.write()

@@ -4,23 +4,10 @@ The notebook is stored without outputs; tests/test_notebooks.py executes it at a
 image size (JAXISO_NB_SIZE=24), which also shrinks its volumes.
 """
 
-import pathlib
-import textwrap
+from _nbtools import ROW, TIMED, Notebook, helpers, setup
 
-import nbformat
-from nbformat.v4 import new_code_cell, new_markdown_cell, new_notebook
-
-HERE = pathlib.Path(__file__).resolve().parent
-
-CELLS = []
-
-
-def md(text):
-    CELLS.append(new_markdown_cell(textwrap.dedent(text).strip()))
-
-
-def code(text):
-    CELLS.append(new_code_cell(textwrap.dedent(text).strip()))
+NOTEBOOK = Notebook("02_volumes.ipynb")
+md, code = NOTEBOOK.md, NOTEBOOK.code
 
 
 md("""
@@ -57,7 +44,7 @@ step, dP/dV) reuse the compiled program. The cells below are arranged to reuse i
 they can.
 """)
 
-code("""
+code(setup("""
 import importlib.util
 import os
 import shutil
@@ -73,27 +60,11 @@ import jaxiso as ji
 from jaxiso.io import load_volume, save_volume
 from jaxiso.volume import (MacrocellGrid, OctreeVolume, VolumeIsosurface, VolumeSequence,
                            data, lod_for)
-
-SIZE = int(os.environ.get("JAXISO_NB_SIZE", "256"))
+""", "256", more="""
 N = max(16, min(128, SIZE // 2))   # voxels per axis of the example volumes
-print(f"jaxiso {ji.__version__}, jax {jax.__version__} on {jax.devices()[0].platform}, "
-      f"{SIZE}x{SIZE} images, {N}^3 volumes")
-""")
+""", note=", {N}^3 volumes"))
 
-code('''
-def row(*images, gap=4):
-    """Images side by side (white gaps): an `ji.Image`, so it shows inline."""
-    h = max(im.shape[0] for im in images)
-    parts = []
-    for i, im in enumerate(images):
-        im = np.asarray(im, np.float32)
-        if i:
-            parts.append(np.ones((h, gap, 3), np.float32))
-        pad = np.ones((h - im.shape[0], im.shape[1], 3), np.float32)
-        parts.append(np.concatenate([im, pad], axis=0))
-    return ji.Image(np.concatenate(parts, axis=1))
-
-
+code(helpers(ROW, '''
 def difference(reference, image):
     """1 - |reference - image| per channel (the seed's Fig. 4.15): white where equal."""
     return ji.Image(1.0 - np.abs(np.asarray(reference) - np.asarray(image)))
@@ -112,14 +83,7 @@ def signed(values, vmax):
     red, blue = np.array([0.75, 0.1, 0.1]), np.array([0.1, 0.25, 0.75])
     img = np.where(v > 0, 1.0 - v * (1.0 - red), 1.0 + v * (1.0 - blue))
     return ji.Image(np.where(np.isnan(values)[..., None], 0.85, img).astype(np.float32))
-
-
-def timed(fn, *args, **kwargs):
-    """(result, seconds); waits for the device."""
-    t = time.perf_counter()
-    out = jax.block_until_ready(fn(*args, **kwargs))
-    return out, time.perf_counter() - t
-''')
+''', TIMED))
 
 # ---------------------------------------------------------------------------------------
 md("""
@@ -563,10 +527,4 @@ hit.
 * Volumes are pytrees: `jax.jvp`/`jax.grad` of depths or images with respect to float
   voxel values work as above.
 """)
-nb = new_notebook(cells=CELLS, metadata={
-    "kernelspec": {"name": "python3", "display_name": "Python 3", "language": "python"},
-    "language_info": {"name": "python"},
-})
-nbformat.validate(nb)
-nbformat.write(nb, HERE / "02_volumes.ipynb")
-print(f"wrote {HERE / '02_volumes.ipynb'} ({len(CELLS)} cells)")
+NOTEBOOK.write()

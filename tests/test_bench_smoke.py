@@ -1,19 +1,99 @@
 """Smoke test of benchmarks/bench_implicit.py: the --quick run completes in-process and
 writes the JSON the full benchmark writes (about 45-60 s on a 2-core CPU, mostly
-compilation)."""
+compilation); and the scaffolding every benchmark shares (benchmarks/_common.py)."""
 
+import argparse
 import importlib.util
 import json
 import pathlib
 
-BENCH = pathlib.Path(__file__).resolve().parent.parent / "benchmarks" / "bench_implicit.py"
+import pytest
+
+BENCHMARKS = pathlib.Path(__file__).resolve().parent.parent / "benchmarks"
+BENCH = BENCHMARKS / "bench_implicit.py"
 
 
-def load_bench():
-    spec = importlib.util.spec_from_file_location("bench_implicit", BENCH)
+def load_module(path):
+    spec = importlib.util.spec_from_file_location(path.stem, path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
+
+
+def load_bench():
+    return load_module(BENCH)
+
+
+def test_common_options_and_their_errors(capsys):
+    common = load_module(BENCHMARKS / "_common.py")
+
+    def parse(*argv, repeat_flags=("--repeats",)):
+        p = argparse.ArgumentParser()
+        return common.parse_args(p, list(argv), ("a", "b", "c"), "out_dir", repeat_flags)
+
+    args, only = parse("--only", " c,a ", "--repeats", "2")
+    assert only == ["c", "a"]  # as asked; Run.sections still runs them in section order
+    assert (args.repeats, args.slow_s, args.quick, args.out) == (2, 2.0, False, "out_dir")
+    args, only = parse("--quick", repeat_flags=("--repeats", "--build-repeats"))
+    assert only == ["a", "b", "c"] and args.build_repeats == 3 and args.quick
+    for argv, message in ((["--only", "a,x"], "unknown section(s) ['x']"),
+                          (["--repeats", "0"], "--repeats must be >= 1")):
+        with pytest.raises(SystemExit):
+            parse(*argv)
+        assert message in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        parse("--build-repeats", "0", repeat_flags=("--repeats", "--build-repeats"))
+    assert "--repeats and --build-repeats must be >= 1" in capsys.readouterr().err
+
+
+def test_time_calls_counts_the_calls():
+    common = load_module(BENCHMARKS / "_common.py")
+    calls = []
+
+    def call():
+        calls.append(1)
+        return len(calls)
+
+    out, timing = common.time_calls(call, 3, slow_s=60.0)
+    assert (out, timing["repeats_used"], len(calls)) == (4, 3, 4)  # warm-up + 3
+    assert timing["run_s"] >= 0 and timing["cpu_s"] >= 0 and timing["warmup_s"] >= 0
+    calls.clear()
+    _, timing = common.time_calls(call, 3, slow_s=-1.0)  # warm-up "too slow": alone
+    assert (timing["repeats_used"], len(calls), timing["run_s"]) == (0, 1, timing["warmup_s"])
+    calls.clear()
+    _, timing = common.time_calls(call, 3, slow_s=60.0, timed=False)
+    assert (timing["repeats_used"], len(calls)) == (0, 1)
+
+
+def test_run_keeps_the_other_sections_when_one_fails(tmp_path, capsys):
+    common = load_module(BENCHMARKS / "_common.py")
+    args = argparse.Namespace(out=str(tmp_path / "res"), repeats=1, slow_s=1.0, quick=True)
+    run = common.Run("demo", args, ["b", "a", "c"], {"k": 1}, extra_key="x",
+                     stamp=lambda r: r.update(stamped=True))
+
+    def section(name):
+        if name == "b":
+            raise ValueError("broken")
+        return {"value": name}
+
+    run.sections(("a", "b", "c", "d"), section)
+    result = run.finish(lambda plt, save, result: None, more=["other.png"])
+    written = json.loads(run.path.read_text())
+    assert run.path.name.startswith("demo_") and run.path.parent == tmp_path / "res"
+    assert written["a"]["value"] == "a" and written["c"]["value"] == "c"
+    assert "b" not in written and "d" not in written
+    assert written["errors"] == {"b": "ValueError: broken"}
+    assert written["sections"] == ["b", "a", "c"] and written["config"] == {"k": 1}
+    assert written["extra_key"] == "x" and written["stamped"] is True
+    # JSON key order: metadata, extra keys, timing, then sections and stamps as they came
+    assert list(written)[:4] == ["benchmark", "jax_version", "jaxiso_version",
+                                 "numpy_version"]
+    assert list(written)[-7:] == ["extra_key", "timing", "a", "total_s", "stamped", "c",
+                                  "charts"]
+    assert result["charts"] == [] and written["charts"] == []
+    out = capsys.readouterr().out
+    assert "b FAILED: ValueError: broken" in out and "wrote other.png" in out
+    assert "ERRORS in ['b']" in out
 
 
 def test_quick_run_writes_json(tmp_path):
