@@ -181,7 +181,7 @@ def _step(hierarchy, isovalues, method, n_cells, s):
         # Watertight across cells: the field is continuous, but this cell's value at its
         # entry face and the last cell's at its exit face are two float32 evaluations of
         # it. A root within rounding of the shared face can fall outside both cells'
-        # [0, s1] (a crack: one pixel in 4096 of a 512^3 mixing layer). So a sign change
+        # [0, s1] (a crack: one pixel of a 64^2 sample of the 256^3 mixing layer). A sign change
         # between the last exit and this entry is a root at the entry, and a sign change
         # over this cell that the root finder missed is a root at its exit
         # (the root finder evaluates its ends its own way).
