@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-__all__ = ["run_lanes", "phase_widths"]
+__all__ = ["run_rays", "run_lanes", "phase_widths"]
 
 
 def phase_widths(lanes: int, n: int, min_width: int = 32) -> list[int]:
@@ -33,6 +33,35 @@ def _select(mask, new, old):
     """Per-lane where over two state pytrees ([L, ...] leaves)."""
     return jax.tree_util.tree_map(
         lambda a, b: jnp.where(mask.reshape((-1,) + (1,) * (b.ndim - 1)), a, b), new, old)
+
+
+def run_rays(step, busy, state, results, *, max_steps: int, steps: str, lanes=None):
+    """Iterate per-ray `state` (leaves [P, ...]) until no ray is busy.
+
+    step: state -> state (rays not busy must come back unchanged); busy: state -> [P]
+    bool; results: the state keys to return; steps: the key of the per-ray iteration
+    counter, which bounds each ray at `max_steps`. lanes None: one `while_loop` over the
+    packet (until its slowest ray is done); an int: persistent lanes with refill. Both
+    give the same per-ray results. Returns {key: [P, ...]} for `results`.
+    """
+    if lanes is None:
+        def cond(c):
+            it, s = c
+            return jnp.any(busy(s)) & (it < max_steps)
+
+        _, out = lax.while_loop(cond, lambda c: (c[0] + 1, step(c[1])), (jnp.int32(0), state))
+        return {k: out[k] for k in results}
+    going = busy(state)
+    order = jnp.argsort(~going, stable=True)
+    queue = jax.tree_util.tree_map(lambda a: a[order], state)
+    queue["idx"] = order.astype(jnp.int32)
+
+    def write(res, s, target):
+        return {k: res[k].at[target].set(s[k], mode="drop") for k in results}
+
+    return run_lanes(step, lambda s: ~busy(s) | (s[steps] >= max_steps), queue,
+                     jnp.sum(going).astype(jnp.int32), {k: state[k] for k in results}, write,
+                     lanes=min(int(lanes), going.shape[0]))
 
 
 def run_lanes(step, done, queue, n_queue, results, write, *, lanes: int,

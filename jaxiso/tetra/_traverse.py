@@ -16,7 +16,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from .._lanes import run_lanes
+from .._lanes import run_rays
 from ._bvh import octant_of, right_first
 from ._isopoly import isopolygon_hits
 
@@ -72,26 +72,8 @@ def traverse(bvh, points, tets, values, isovalues, o, d, t_min, t_max, *, max_st
     def step(s):
         return _step(bvh, points, tets, values, isovalues, snap, s)
 
-    if lanes is None:
-        def cond(c):
-            it, s = c
-            return jnp.any(s["node"] < n_nodes) & (it < max_steps)
-
-        _, out = jax.lax.while_loop(cond, lambda c: (c[0] + 1, step(c[1])),
-                                    (jnp.int32(0), state))
-    else:
-        going = state["node"] < n_nodes
-        order = jnp.argsort(~going, stable=True)
-        queue = jax.tree_util.tree_map(lambda a: a[order], state)
-        queue["idx"] = order.astype(jnp.int32)
-        out = {k: state[k] for k in _RESULTS}
-
-        def write(res, s, target):
-            return {k: res[k].at[target].set(s[k], mode="drop") for k in _RESULTS}
-
-        out = run_lanes(step, lambda s: (s["node"] >= n_nodes) | (s["nodes"] >= max_steps),
-                        queue, jnp.sum(going).astype(jnp.int32), out, write,
-                        lanes=min(int(lanes), p))
+    out = run_rays(step, lambda s: s["node"] < n_nodes, state, _RESULTS,
+                   max_steps=max_steps, steps="nodes", lanes=lanes)
     hit = jnp.isfinite(out["t"])
     return out["t"], hit, out["which"], out["tet"], out["nodes"], out["leaves"]
 

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._lanes import run_lanes
+from .._lanes import run_rays
 from . import _cell
 
 __all__ = ["slab", "traverse", "voxel_ray"]
@@ -114,26 +114,8 @@ def traverse(hierarchy, isovalues, q0, dq, t_start, t_end, *, method="neubauer",
     def step(s):
         return _step(hierarchy, isovalues, method, n_cells, s)
 
-    if lanes is None:
-        def cond(c):
-            it, s = c
-            return jnp.any(s["going"]) & (it < max_steps)
-
-        _, out = jax.lax.while_loop(cond, lambda c: (c[0] + 1, step(c[1])),
-                                    (jnp.int32(0), state))
-    else:
-        p = q0.shape[0]
-        order = jnp.argsort(~state["going"], stable=True)
-        queue = jax.tree_util.tree_map(lambda a: a[order], state)
-        queue["idx"] = order.astype(jnp.int32)
-        out = {k: state[k] for k in _RESULTS}
-
-        def write(res, s, target):
-            return {k: res[k].at[target].set(s[k], mode="drop") for k in _RESULTS}
-
-        out = run_lanes(step, lambda s: ~s["going"] | (s["steps"] >= max_steps), queue,
-                        jnp.sum(state["going"]).astype(jnp.int32), out, write,
-                        lanes=min(int(lanes), p))
+    out = run_rays(step, lambda s: s["going"], state, _RESULTS, max_steps=max_steps,
+                   steps="steps", lanes=lanes)
     return tuple(out[k] for k in _RESULTS)
 
 
