@@ -401,7 +401,7 @@ def test_refit_jax_matches_numpy(mesh, method):
 def test_bvh_is_a_pytree_with_static_meta(mesh):
     bvh = build_bvh(mesh, method="sah", leaf_size=5)
     leaves, tree = jax.tree.flatten(bvh)
-    assert len(leaves) == 10
+    assert len(leaves) == 5  # bounds, links, order, depth, levels
     again = jax.tree.unflatten(tree, leaves)
     assert (again.leaf_size, again.method) == (5, "sah")
     bumped = jax.tree.map(lambda a: a, dataclasses.replace(bvh, leaf_size=7))
@@ -424,8 +424,8 @@ def test_stats_and_memory_report(mesh):
     assert rep["points_bytes"] == 64 * 3 * 4 and rep["tets_bytes"] == 162 * 4 * 4
     assert rep["values_bytes_per_step"] == 64 * 4 and rep["values_bytes"] == 3 * 64 * 4
     assert rep["mesh_bytes"] == 768 + 2592 + 768
-    # lo, hi; skip, first, count, depth; split_axis (int8); escape (8 octants); levels
-    assert rep["bvh_node_bytes"] == n * (2 * 16 + 4 * 4 + 1 + 8 * 4) + interior * 4
+    # bounds (lo, hi); links (kind, first, right, skip, 8 escapes); depth; levels
+    assert rep["bvh_node_bytes"] == n * (2 * 16 + 12 * 4 + 4) + interior * 4
     assert rep["bvh_order_bytes"] == 162 * 4
     assert rep["total_bytes"] == rep["mesh_bytes"] + rep["bvh_bytes"]
     assert np.isclose(rep["overhead_pct"], 100 * rep["bvh_bytes"] / rep["mesh_bytes"])

@@ -57,6 +57,35 @@ def test_hits_match_reference(field, iso, bvh, lanes):
     assert h_ref.sum() > 40
 
 
+def test_postponed_leaf_tests_give_the_same_hits_and_work_whenever_they_fire():
+    # rays wait at leaves until a fraction of the packet waits: 0 tests every leaf as soon
+    # as a ray reaches it, 1 only when all busy rays wait; the hits, and the nodes and
+    # leaves each ray visits, must not depend on when the tests run
+    from jaxiso.tetra._traverse import traverse
+
+    values = data.random_field(POINTS, 2)
+    scene = TetIsosurface(tet_mesh(POINTS, TETS, values), [0.1, -0.3], bvh="bih")
+    rays, *_ = _camera()
+    o, d = rays.origin, rays.direction
+    t0, t1 = jnp.zeros(W * W), jnp.full(W * W, jnp.inf)
+    values = jnp.asarray(values)
+
+    def run(fill):
+        one = jax.jit(lambda o, d, a, b: traverse(scene.bvh, jnp.asarray(POINTS),
+                                                  jnp.asarray(TETS), values,
+                                                  scene.isovalues, o, d, a, b,
+                                                  leaf_fill=fill))
+        out = [one(*(x.reshape((-1, 16) + x.shape[1:])[i] for x in (o, d, t0, t1)))
+               for i in range(W * W // 16)]
+        return [np.concatenate([np.asarray(r[j]) for r in out]) for j in range(6)]
+
+    first = run(0.0)
+    assert first[1].sum() > 40 and first[5].max() >= 2  # hits, rays through several leaves
+    for fill in (0.5, 1.0):
+        for a, b in zip(first, run(fill)):
+            assert np.array_equal(a, b)
+
+
 def test_isovalues_equal_to_vertex_values_and_clip_box():
     values = np.random.default_rng(3).integers(0, 4, len(POINTS)).astype(np.float32)
     _compare(values, [1.0, 2.0])

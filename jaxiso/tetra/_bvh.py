@@ -1,23 +1,31 @@
 """The implicit BVH over a tet mesh (seed Sec. 5.4): a BVH whose nodes bound x, y, z and
 the scalar value, so a traversal culls every subtree whose value range misses the isovalue.
 
-Layout (flat arrays, N nodes in depth-first pre-order; what the traversal relies on):
+Layout (N nodes in depth-first pre-order; what the traversal relies on). A node is two
+rows, so that a traversal step reads one float row and one int row:
 
-* the left child of interior node i is i + 1; ``skip[i]`` is the first node after i's
-  subtree (N for the last one), so the right child of i is ``skip[i + 1]``;
-* ``lo``, ``hi`` float32 [N, 4]: min / max of x, y, z and value over the vertices of the
-  node's tets, for the time step last built or refit for;
-* ``count[i]`` tets in leaf i (1..leaf_size; 0 marks an interior node), stored as
-  ``order[first[i]:first[i] + count[i]]``; ``first[i]`` of an interior node is where its
-  subtree's tets start, and leaves' ranges follow one another in pre-order;
+* ``bounds`` float32 [N, 8]: ``lo`` (min of x, y, z, value) then ``hi`` (max) over the
+  vertices of the node's tets, for the time step last built or refit for;
+* ``links`` int32 [N, 12]: ``kind``, ``first``, ``right``, ``skip``, then ``escape`` of the
+  8 ray octants:
+
+  - the left child of interior node i is i + 1 and ``right[i]`` (= ``skip[i + 1]``) its
+    right child; ``skip[i]`` is the first node after i's subtree (N for the last one);
+  - ``kind[i]`` > 0: a leaf of that many tets (1..leaf_size), stored as
+    ``order[first[i]:first[i] + count[i]]``; ``kind[i]`` < 0: an interior node whose
+    children lie along split code -kind - 1 (below); ``first[i]`` of an interior node is
+    where its subtree's tets start, and leaves' ranges follow one another in pre-order;
+  - near-child-first order without a stack: the split code (``split_axis``) is 2 axis + 1
+    when the right child is the lower one on the axis of largest child-centre separation
+    (measured on the build's geometry); a ray whose direction points along +axis visits
+    the lower child first. ``escape[o]`` is the node after i's subtree in that order for
+    rays of octant o = 4 (dx < 0) + 2 (dy < 0) + (dz < 0). A ray nearer hits first, so
+    its best t culls more of the rest (the seed's ordered traversal, Sec. 5.4.2);
+
 * ``order`` int32 [T'] indices of the mesh's non-degenerate tets (degenerate ones bound no
   volume and are left out; tets with a constant value are kept).
-* near-child-first order without a stack: ``split_axis[i]`` (int8, interior nodes) codes
-  the axis along which i's children lie (2 axis + 1 when the right child is the lower
-  one), measured on the build's geometry; a ray whose direction points along +axis visits
-  the lower child first. ``escape[o, i]`` is the node after i's subtree in that order for
-  rays of octant o = 4 (dx < 0) + 2 (dy < 0) + (dz < 0). A ray nearer hits first, so its
-  best t culls more of the rest (the seed's ordered traversal, Sec. 5.4.2).
+
+`BVH.lo`, `hi`, `count`, `first`, `skip`, `split_axis` and `escape` ([8, N]) read these.
 
 A mesh whose tets are all degenerate gets a single empty leaf (count 0, lo = inf,
 hi = -inf) that no traversal enters.
@@ -57,35 +65,62 @@ class BVH:
     """An implicit BVH in flat pre-order arrays (layout in the module doc).
 
     Attributes:
-      lo, hi: float32 [N, 4] bounds of x, y, z, value.
-      skip: int32 [N] first node after the subtree.
-      first: int32 [N] start of the node's tets in `order`.
-      count: int32 [N] tets of a leaf, 0 for interior nodes.
+      bounds: float32 [N, 8] lo (x, y, z, value) and hi per node.
+      links: int32 [N, 12] kind, first, right, skip and the 8 octants' escapes per node.
       order: int32 [T'] tet indices of the non-degenerate tets.
       depth: int32 [N] depth of each node (root 0).
       levels: int32 [I] the interior nodes, deepest level first (a bottom-up refit order).
-      split_axis: int8 [N] near-child code (module doc); escape: int32 [8, N] per octant.
       leaf_size, method: static build parameters.
       level_sizes: static tuple, how many of `levels` belong to each depth, deepest first.
     """
 
-    lo: np.ndarray
-    hi: np.ndarray
-    skip: np.ndarray
-    first: np.ndarray
-    count: np.ndarray
+    bounds: np.ndarray
+    links: np.ndarray
     order: np.ndarray
     depth: np.ndarray
     levels: np.ndarray
-    split_axis: np.ndarray
-    escape: np.ndarray
     leaf_size: int = _static(8)
     method: str = _static("bih")
     level_sizes: tuple = _static(())
 
+    # views of the two node rows (numpy or jax arrays alike)
+    @property
+    def lo(self):
+        """float32 [N, 4] min of x, y, z, value."""
+        return self.bounds[:, :4]
+
+    @property
+    def hi(self):
+        return self.bounds[:, 4:]
+
+    @property
+    def count(self):
+        """int32 [N] tets of a leaf, 0 for interior nodes."""
+        return self.links[:, 0].clip(0)
+
+    @property
+    def first(self):
+        """int32 [N] start of the node's tets in `order`."""
+        return self.links[:, 1]
+
+    @property
+    def skip(self):
+        """int32 [N] first node after the subtree."""
+        return self.links[:, 3]
+
+    @property
+    def split_axis(self):
+        """int8 [N] near-child code of interior nodes (0 for leaves)."""
+        return (-self.links[:, 0] - 1).clip(0).astype(np.int8)
+
+    @property
+    def escape(self):
+        """int32 [8, N] the node after each subtree in near-first order, per ray octant."""
+        return self.links[:, 4:].T
+
     @property
     def n_nodes(self) -> int:
-        return int(np.shape(self.skip)[0])
+        return int(np.shape(self.links)[0])
 
     @property
     def nbytes(self) -> int:
@@ -114,14 +149,18 @@ def build_bvh(mesh: TetMesh, *, method: str = "bih", leaf_size: int = 8,
     # `split` may reorder `perm` within the nodes it cuts, so read perm after growing.
     skip, first, count, depth, levels, level_sizes = _preorder(
         *_grow(kept.size, int(leaf_size), split))
-    empty = np.zeros((skip.size, 4), np.float32)
-    no_order = np.zeros(skip.size, np.int8), np.zeros((8, skip.size), np.int32)
-    bvh = BVH(empty, empty, skip, first, count, kept[perm], depth, levels, *no_order,
-              leaf_size=int(leaf_size), method=method, level_sizes=level_sizes)
-    bvh = refit(bvh, mesh, step)
-    split_axis = _split_axes(bvh)
-    return dataclasses.replace(bvh, split_axis=split_axis,
-                               escape=_escapes(bvh.skip, bvh.count, bvh.depth, split_axis))
+    n = skip.size
+    right = np.zeros(n, np.int32)
+    inner = np.flatnonzero((count == 0) & (np.arange(n) + 1 < n))
+    right[inner] = skip[inner + 1]
+    slot_lo, slot_hi = _slot_bounds(points, tets, np.asarray(mesh.values)[step], kept[perm])
+    lo, hi = _node_bounds(slot_lo, slot_hi, count, first, skip, levels, level_sizes)
+    split_axis = _split_axes(lo, hi, count, skip, right)
+    escape = _escapes(skip, count, depth, split_axis)
+    kind = np.where(count > 0, count, -1 - split_axis.astype(np.int32))
+    links = np.concatenate([np.stack([kind, first, right, skip], axis=1), escape.T], axis=1)
+    return BVH(np.concatenate([lo, hi], axis=1), links.astype(np.int32), kept[perm], depth,
+               levels, leaf_size=int(leaf_size), method=method, level_sizes=level_sizes)
 
 
 def right_first(split_axis, octant):
@@ -137,14 +176,13 @@ def octant_of(d):
     return 4 * neg[..., 0] + 2 * neg[..., 1] + neg[..., 2]
 
 
-def _split_axes(bvh):
+def _split_axes(lo, hi, count, skip, right):
     """int8 [N]: per interior node the axis of largest child-centre separation, + 1 when
-    the right child lies lower on it (0 for leaves)."""
-    skip, count = np.asarray(bvh.skip), np.asarray(bvh.count)
-    lo, hi = np.asarray(bvh.lo, np.float64)[:, :3], np.asarray(bvh.hi, np.float64)[:, :3]
+    the right child lies lower on it (0 for leaves), from node bounds lo, hi [N, 4]."""
+    lo, hi = np.asarray(lo, np.float64)[:, :3], np.asarray(hi, np.float64)[:, :3]
     inner = np.flatnonzero(count == 0)
     inner = inner[inner + 1 < skip.size]  # the lone empty leaf of a degenerate mesh
-    left, right = inner + 1, skip[inner + 1]
+    left, right = inner + 1, right[inner]
     gap = (lo[right] + hi[right]) - (lo[left] + hi[left])
     gap = np.where(np.isfinite(gap), gap, 0.0)
     axis = np.argmax(np.abs(gap), axis=1)
@@ -181,8 +219,9 @@ def refit(bvh: BVH, mesh: TetMesh, step: int = 0) -> BVH:
     _check_step(mesh, step)
     slot_lo, slot_hi = _slot_bounds(np.asarray(mesh.points), np.asarray(mesh.tets),
                                     np.asarray(mesh.values)[step], np.asarray(bvh.order))
-    lo, hi = _node_bounds(slot_lo, slot_hi, bvh)
-    return dataclasses.replace(bvh, lo=lo, hi=hi)
+    lo, hi = _node_bounds(slot_lo, slot_hi, np.asarray(bvh.count), np.asarray(bvh.first),
+                          np.asarray(bvh.skip), np.asarray(bvh.levels), bvh.level_sizes)
+    return dataclasses.replace(bvh, bounds=np.concatenate([lo, hi], axis=1))
 
 
 def refit_jax(bvh: BVH, points, values_step, tets) -> BVH:
@@ -193,7 +232,8 @@ def refit_jax(bvh: BVH, points, values_step, tets) -> BVH:
     # Bounds as (lo, -hi) [., 8]: one min does both, halving the ops to trace and compile.
     slot = jnp.concatenate([xyz.min(axis=1), val.min(axis=1), -xyz.max(axis=1),
                             -val.max(axis=1)], axis=1)
-    n_nodes, n_slots = bvh.skip.shape[0], bvh.order.shape[0]
+    n_nodes, n_slots = bvh.links.shape[0], bvh.order.shape[0]
+    right = bvh.links[:, 2]
     # Leaf owning each slot of `order`: mark each leaf's first slot with its node index and
     # carry it forward (leaves' ranges increase with the node index in pre-order).
     marks = jnp.zeros(n_slots, jnp.int32).at[jnp.where(bvh.count > 0, bvh.first, n_slots)].max(
@@ -203,9 +243,10 @@ def refit_jax(bvh: BVH, points, values_step, tets) -> BVH:
     for size in bvh.level_sizes:  # deepest level first: children are final before parents
         nodes = bvh.levels[start:start + size]
         start += size
-        bounds = bounds.at[nodes].set(jnp.minimum(bounds[nodes + 1], bounds[bvh.skip[nodes + 1]]))
+        bounds = bounds.at[nodes].set(jnp.minimum(bounds[nodes + 1], bounds[right[nodes]]))
     bounds = bounds.astype(jnp.float32)
-    return dataclasses.replace(bvh, lo=bounds[:, :4], hi=-bounds[:, 4:])
+    return dataclasses.replace(bvh, bounds=jnp.concatenate([bounds[:, :4], -bounds[:, 4:]],
+                                                           axis=1))
 
 
 def bvh_stats(bvh: BVH) -> dict:
@@ -228,14 +269,12 @@ def bvh_stats(bvh: BVH) -> dict:
 def memory_report(bvh: BVH, mesh: TetMesh) -> dict:
     """Bytes of the raw mesh and of the BVH (seed Table 5.5 analog).
 
-    mesh_bytes = points + tets + all value steps; bvh_bytes = node arrays (lo, hi, skip,
-    first, count, depth, levels, split_axis, escape) + order; overhead_pct = 100 * bvh_bytes
-    / mesh_bytes for one BVH shared by all steps (Schema II), per_step_overhead_pct for one
-    BVH per step (Schema I); worst_case_node_bytes: 2T - 1 nodes as the seed pre-allocates.
+    mesh_bytes = points + tets + all value steps; bvh_bytes = node arrays (bounds, links,
+    depth, levels) + order; overhead_pct = 100 * bvh_bytes / mesh_bytes for one BVH shared
+    by all steps (Schema II), per_step_overhead_pct for one BVH per step (Schema I);
+    worst_case_node_bytes: 2T - 1 nodes as the seed pre-allocates.
     """
-    arrays = {k: np.asarray(getattr(bvh, k)) for k in
-              ("lo", "hi", "skip", "first", "count", "depth", "levels", "split_axis",
-               "escape")}
+    arrays = {k: np.asarray(getattr(bvh, k)) for k in ("bounds", "links", "depth", "levels")}
     node_bytes = sum(a.nbytes for a in arrays.values())
     order_bytes = np.asarray(bvh.order).nbytes
     values = np.asarray(mesh.values)
@@ -451,11 +490,11 @@ def _max4(a):
     return np.maximum(np.maximum(a[0], a[1]), np.maximum(a[2], a[3]))
 
 
-def _node_bounds(slot_lo, slot_hi, bvh):
+def _node_bounds(slot_lo, slot_hi, count, first, skip, levels, level_sizes):
     """Node bounds [N, 4]: leaves by reduceat over their slot ranges, then interior nodes
-    as the union of their two children, bottom-up one depth at a time."""
-    n_nodes = bvh.n_nodes
-    count, first, skip = (np.asarray(a) for a in (bvh.count, bvh.first, bvh.skip))
+    as the union of their two children, bottom-up one depth at a time (`levels`, deepest
+    first, `level_sizes` per depth)."""
+    n_nodes = skip.size
     lo = np.full((n_nodes, 4), np.inf, np.float32)
     hi = np.full((n_nodes, 4), -np.inf, np.float32)
     leaves = np.flatnonzero(count > 0)
@@ -463,8 +502,8 @@ def _node_bounds(slot_lo, slot_hi, bvh):
         # Leaves tile [0, T') in pre-order, so each reduceat segment is exactly one leaf.
         lo[leaves] = np.minimum.reduceat(slot_lo, first[leaves])
         hi[leaves] = np.maximum.reduceat(slot_hi, first[leaves])
-    levels, start = np.asarray(bvh.levels), 0
-    for size in bvh.level_sizes:
+    start = 0
+    for size in level_sizes:
         nodes = levels[start:start + size]
         start += size
         left, right = nodes + 1, skip[nodes + 1]

@@ -4,11 +4,13 @@ Nodes are in depth-first pre-order: the left child of an interior node is the ne
 and `skip` jumps over a subtree. A ray goes down to the child nearer along the node's
 split axis first and leaves a subtree by its octant's escape pointer (`_bvh`). One
 `lax.while_loop` runs a packet of rays [P] (or persistent lanes with refill over a whole
-image, `jaxiso._lanes`); every iteration each live ray looks at one node: it enters it
+image, `jaxiso._lanes`); every iteration each walking ray looks at one node: it enters it
 when the ray's box test passes within [t_min, best t so far] and the node's value range
-holds an isovalue, otherwise skips it. A leaf's tets are intersected (under a `lax.cond`,
-only when some ray of the packet is at a leaf) and the ray moves on by its escape; the loop
-ends when every ray has left the last node.
+holds an isovalue, otherwise skips it. A ray that enters a leaf takes its escape and waits
+until the packet's waiting rays have their leaves tested together, in one pass of the leaf
+test (under a `lax.cond`) when every busy ray waits (Aila and Laine's "postponed leaves";
+the test costs as much for one ray as for the packet); the loop ends when every ray has
+left the last node and has no leaf waiting.
 """
 
 from __future__ import annotations
@@ -40,40 +42,57 @@ def _box_enter(o, inv_d, lo, hi, t0, t1):
 
 
 def traverse(bvh, points, tets, values, isovalues, o, d, t_min, t_max, *, max_steps=None,
-             lanes=None):
+             lanes=None, leaf_fill=None):
     """Nearest crossing of each ray with any isosurface of the linear tets.
 
     Args:
       bvh: `BVH` with bounds valid for `points`/`values`.
       points [V, 3], tets [T, 4], values [V]: the mesh at one time step.
       isovalues: [K]; o, d: [P, 3]; t_min, t_max: [P].
-      max_steps: iteration bound per ray (default 2 N + 8, enough to visit every node
-        once).
+      max_steps: bound on the nodes a ray visits (default 2 N + 8: every node once).
       lanes: None: one `while_loop` over the packet; an int: persistent lanes with refill
         over the packet (`jaxiso._lanes`; for a whole image). Same results.
+      leaf_fill: a ray that enters a leaf waits there until at least this fraction of the
+        busy rays wait at a leaf, and then all their leaves are tested at once (one pass
+        of the leaf test instead of one per ray). Default 1 for a packet (every busy ray
+        at a leaf or done); 0 (test as soon as any ray is at a leaf) on lanes, where
+        lanes without a ray must not hold the others up. Same results.
 
     Returns:
       t [P] (inf on a miss), hit [P], which [P] isovalue index (-1), tet [P] (-1),
       nodes [P] nodes visited, leaves [P] leaves intersected (work counters).
     """
-    n_nodes = bvh.skip.shape[0]
+    n_nodes = bvh.links.shape[0]
     if max_steps is None:
         max_steps = 2 * n_nodes + 8
+    if leaf_fill is None:
+        leaf_fill = 1.0 if lanes is None else 0.0
     p = o.shape[0]
     # one snapping distance for the whole mesh (see isopolygon_hits)
     snap = SNAP * jnp.max(jnp.abs(values))
     state = dict(o=o, inv_d=1.0 / d,  # inf on axis-parallel rays: see _box_enter
                  d=d, t_min=t_min, t_max=t_max, octant=octant_of(d),
                  node=jnp.where(t_min <= t_max, 0, n_nodes).astype(jnp.int32),
+                 leaf_first=jnp.zeros(p, jnp.int32), leaf_count=jnp.zeros(p, jnp.int32),
                  t=jnp.full(p, jnp.inf, jnp.float32), which=jnp.full(p, -1, jnp.int32),
                  tet=jnp.full(p, -1, jnp.int32), nodes=jnp.zeros(p, jnp.int32),
                  leaves=jnp.zeros(p, jnp.int32))
 
-    def step(s):
-        return _step(bvh, points, tets, values, isovalues, snap, s)
+    def walking(s):
+        return (s["node"] < n_nodes) & (s["nodes"] < max_steps)
 
-    out = run_rays(step, lambda s: s["node"] < n_nodes, state, _RESULTS,
-                   max_steps=max_steps, steps="nodes", lanes=lanes)
+    def busy(s):
+        return walking(s) | (s["leaf_count"] > 0)
+
+    def step(s):
+        return _step(bvh, points, tets, values, isovalues, snap, leaf_fill, walking, s)
+
+    # `walking` bounds each ray's nodes; the loop's own bound only guards termination:
+    # every iteration tests the waiting rays' leaves or moves a walking ray, at most
+    # 2 P max_steps in all (lanes: one more than a ray's bound, so it is never reached)
+    bound = min(2 * p * max_steps + 1, 2**31 - 1) if lanes is None else max_steps + 1
+    out = run_rays(step, busy, state, _RESULTS, max_steps=bound, steps="nodes",
+                   lanes=lanes)
     hit = jnp.isfinite(out["t"])
     return out["t"], hit, out["which"], out["tet"], out["nodes"], out["leaves"]
 
@@ -81,56 +100,67 @@ def traverse(bvh, points, tets, values, isovalues, o, d, t_min, t_max, *, max_st
 _RESULTS = ("t", "which", "tet", "nodes", "leaves")
 
 
-def _step(bvh, points, tets, values, isovalues, snap, s):
-    """One node visit of every ray of the state (rays past the last node unchanged)."""
-    n_nodes = bvh.skip.shape[0]
-    leaf_size = bvh.leaf_size
-    slots = jnp.arange(leaf_size, dtype=jnp.int32)
+def _leaf_hits(bvh, points, tets, values, isovalues, snap, s):
+    """(t [P], isovalue index [P], tet [P]) of the nearest hit among the tets of each ray's
+    waiting leaf (`order[leaf_first:][:leaf_count]`; count 0: none) within its [t_min,
+    t_max]."""
+    slots = jnp.arange(bvh.leaf_size, dtype=jnp.int32)
     o, d, t_min, t_max = s["o"], s["d"], s["t_min"], s["t_max"]
-    p = o.shape[0]
-    live = s["node"] < n_nodes
-    node = jnp.minimum(s["node"], n_nodes - 1)
-    lo, hi = bvh.lo[node], bvh.hi[node]
-    holds = jnp.any((lo[:, 3:4] <= isovalues) & (isovalues <= hi[:, 3:4]), axis=-1)
-    enter = live & holds & _box_enter(o, s["inv_d"], lo[:, :3], hi[:, :3], t_min,
-                                      jnp.minimum(t_max, s["t"]))
-    count = bvh.count[node]
-    leaf = enter & (count > 0)
+    slot = jnp.minimum(s["leaf_first"][:, None] + slots, bvh.order.shape[0] - 1)
+    tet_ids = bvh.order[slot]                                            # [P, L]
+    used = slots[None, :] < s["leaf_count"][:, None]
+    ids = tets[tet_ids]                                                  # [P, L, 4]
+    pts = points[ids]
+    vals = values[ids]
+    best_t = jnp.full(tet_ids.shape, jnp.inf, jnp.float32)
+    best_k = jnp.full(tet_ids.shape, -1, jnp.int32)
+    for k in range(isovalues.shape[0]):
+        t_k, _ = isopolygon_hits(o, d, pts, vals, ids, isovalues[k], snap)
+        ok = used & (t_k >= t_min[:, None]) & (t_k <= t_max[:, None]) & (t_k < best_t)
+        best_t = jnp.where(ok, t_k, best_t)
+        best_k = jnp.where(ok, k, best_k)
+    j = jnp.argmin(best_t, axis=-1)[:, None]
+    return (jnp.take_along_axis(best_t, j, -1)[:, 0], jnp.take_along_axis(best_k, j, -1)[:, 0],
+            jnp.take_along_axis(tet_ids, j, -1)[:, 0])
 
-    def intersect_leaf(_):
-        slot = jnp.minimum(bvh.first[node][:, None] + slots, bvh.order.shape[0] - 1)
-        tet_ids = bvh.order[slot]                                    # [P, L]
-        used = leaf[:, None] & (slots[None, :] < count[:, None])
-        ids = tets[tet_ids]                                          # [P, L, 4]
-        pts = points[ids]
-        vals = values[ids]
-        best_t = jnp.full(tet_ids.shape, jnp.inf, jnp.float32)
-        best_k = jnp.full(tet_ids.shape, -1, jnp.int32)
-        for k in range(isovalues.shape[0]):
-            t_k, _ = isopolygon_hits(o, d, pts, vals, ids, isovalues[k], snap)
-            ok = used & (t_k >= t_min[:, None]) & (t_k <= t_max[:, None]) & (t_k < best_t)
-            best_t = jnp.where(ok, t_k, best_t)
-            best_k = jnp.where(ok, k, best_k)
-        j = jnp.argmin(best_t, axis=-1)
-        t_leaf = jnp.take_along_axis(best_t, j[:, None], -1)[:, 0]
-        k_leaf = jnp.take_along_axis(best_k, j[:, None], -1)[:, 0]
-        tet_leaf = jnp.take_along_axis(tet_ids, j[:, None], -1)[:, 0]
-        return t_leaf, k_leaf, tet_leaf
 
+def _step(bvh, points, tets, values, isovalues, snap, leaf_fill, walking, s):
+    """One iteration over the rays of the state: rays waiting at a leaf have it tested when
+    enough of them wait (`leaf_fill`); every other walking ray visits one node."""
+    n_nodes = bvh.links.shape[0]
+    p = s["o"].shape[0]
+    waiting = s["leaf_count"] > 0
+    walk = walking(s) & ~waiting
+    n_wait = jnp.sum(waiting)
+    fire = (n_wait > 0) & (n_wait >= leaf_fill * jnp.sum(walk | waiting))
     t_leaf, k_leaf, tet_leaf = jax.lax.cond(
-        jnp.any(leaf), intersect_leaf,
-        lambda _: (jnp.full(p, jnp.inf, jnp.float32), jnp.full(p, -1, jnp.int32),
-                   jnp.full(p, -1, jnp.int32)), None)
-    better = leaf & (t_leaf < s["t"])
-    down = enter & (count == 0)
+        fire, lambda: _leaf_hits(bvh, points, tets, values, isovalues, snap, s),
+        lambda: (jnp.full(p, jnp.inf, jnp.float32), jnp.full(p, -1, jnp.int32),
+                 jnp.full(p, -1, jnp.int32)))
+    tested = fire & waiting
+    better = tested & (t_leaf < s["t"])
+
+    # one float row and one int row per node (`_bvh` layout)
+    node = jnp.minimum(s["node"], n_nodes - 1)
+    bounds, links = bvh.bounds[node], bvh.links[node]                   # [P, 8], [P, 12]
+    lo, hi = bounds[:, :4], bounds[:, 4:]
+    holds = jnp.any((lo[:, 3:4] <= isovalues) & (isovalues <= hi[:, 3:4]), axis=-1)
+    enter = walk & holds & _box_enter(s["o"], s["inv_d"], lo[:, :3], hi[:, :3], s["t_min"],
+                                      jnp.minimum(s["t_max"], s["t"]))
+    kind = links[:, 0]
+    at_leaf = enter & (kind > 0)
+    down = enter & (kind < 0)
     # near child first: the ray's best t then culls more of the far one
-    left = jnp.minimum(node + 1, n_nodes - 1)
-    near = jnp.where(right_first(bvh.split_axis[node].astype(jnp.int32), s["octant"]),
-                     bvh.skip[left], left)
-    nxt = jnp.where(down, near, bvh.escape[s["octant"], node])
-    return dict(s, node=jnp.where(live, nxt, s["node"]),
+    split = jnp.maximum(-kind - 1, 0)
+    near = jnp.where(right_first(split, s["octant"]), links[:, 2], node + 1)
+    escape = jnp.take_along_axis(links, 4 + s["octant"][:, None], axis=1)[:, 0]
+    nxt = jnp.where(down, near, escape)
+    # a ray at a leaf moves past it now and waits there until the leaf is tested
+    count = jnp.where(tested, 0, jnp.where(at_leaf, kind, s["leaf_count"]))
+    first = jnp.where(at_leaf, links[:, 1], s["leaf_first"])
+    return dict(s, node=jnp.where(walk, nxt, s["node"]), leaf_first=first, leaf_count=count,
                 t=jnp.where(better, t_leaf, s["t"]),
                 which=jnp.where(better, k_leaf, s["which"]),
                 tet=jnp.where(better, tet_leaf, s["tet"]),
-                nodes=s["nodes"] + live.astype(jnp.int32),
-                leaves=s["leaves"] + leaf.astype(jnp.int32))
+                nodes=s["nodes"] + walk.astype(jnp.int32),
+                leaves=s["leaves"] + at_leaf.astype(jnp.int32))
