@@ -1,14 +1,19 @@
 """Ray-isopolygon intersection inside linear tetrahedra (seed Sec. 5.3).
 
 The field is linear in a tet, so its isosurface there is a planar polygon: the marching-tets
-case (which of the 4 vertices lie above the isovalue, 16 cases) names the 3 or 4 edges it
-cuts, in cyclic order. The ray hits the polygon where it crosses the plane inside every
-edge's half-space. The seed tests the half-spaces in 2D after projecting onto the plane;
-here each edge's test is the sign of d . ((a - o) x (b - o)), the same half-space seen from
-the ray, because that value is computed from the edge's two points alone: a neighbouring
-tet that shares the polygon edge computes the same number with the opposite sign. Edge
-points are interpolated from the lower global vertex index to the higher, so both tets
-produce bit-identical points.
+case (which of the 4 vertices lie above the isovalue, 16 cases) says which of the 6 edges
+it cuts (3 or 4). Each polygon edge lies on a tet face whose vertices are not all on one
+side, and joins the points on that face's two cut edges. Orienting every face's segment
+with the above-side vertex on its left, seen from outside a positively oriented tet,
+chains the segments head to tail around the polygon (`face_segments`), whatever the case.
+
+The ray hits the polygon where it crosses the plane inside every edge's half-space. The
+seed tests the half-spaces in 2D after projecting onto the plane; here each edge's test is
+the sign of d . ((a - o) x (b - o)), the same half-space seen from the ray, because that
+value is computed from the edge's two points alone: a neighbouring tet that shares the
+polygon edge computes the same number with the opposite sign. Edge points are
+interpolated from the lower global vertex index to the higher, so both tets produce
+bit-identical points.
 
 Those points are rounded to float32, and the side value rounds too, so where the exact
 answer is within rounding of 0 (a ray through a polygon corner, or along a silhouette edge
@@ -19,45 +24,24 @@ by one of the two tets or, near it, by both, never by neither, and a ray more th
 float32 roundings outside a polygon is still rejected. Polygons of zero area (the isovalue
 touched at a vertex or along a tet edge) and rays parallel to the polygon's plane up to
 rounding get no hit there: the tets around them hold the surface.
+
+The arithmetic is written per component on arrays of the batch shape (vectors are tuples
+of 3 arrays, the 4 vertices, 6 edges and 4 faces unrolled): it is elementwise throughout,
+so XLA fuses it into a few loops over the batch instead of one small kernel per step,
+which on a CPU cost more than the arithmetic (measured in benchmarks/NOTES.md).
 """
 
 from __future__ import annotations
 
 import jax.numpy as jnp
-import numpy as np
 
-__all__ = ["CASE_EDGES", "CASE_SIZES", "isopolygon_hits", "tet_gradient"]
+__all__ = ["TET_EDGES", "FACES", "face_segments", "isopolygon_hits", "tet_gradient"]
 
-_TET_EDGES = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
-
-
-def _case_table():
-    """[16, 4] edge indices (into _TET_EDGES) of each case's polygon in cyclic order
-    (the 4th repeats the 3rd for triangles) and [16] polygon sizes (0, 3 or 4). Bit i of
-    the case is set when vertex i is above the isovalue (value > iso)."""
-    edge_id = {e: k for k, e in enumerate(_TET_EDGES)}
-    edge_id.update({(b, a): k for (a, b), k in edge_id.items()})
-    table = np.zeros((16, 4), np.int32)
-    sizes = np.zeros(16, np.int32)
-    for case in range(16):
-        above = [v for v in range(4) if case >> v & 1]
-        below = [v for v in range(4) if not case >> v & 1]
-        if len(above) in (1, 3):
-            lone = above[0] if len(above) == 1 else below[0]
-            others = [v for v in range(4) if v != lone]
-            edges = [edge_id[(lone, v)] for v in others]
-            table[case] = edges + edges[-1:]
-            sizes[case] = 3
-        elif len(above) == 2:
-            (a0, a1), (b0, b1) = above, below
-            table[case] = [edge_id[(a0, b0)], edge_id[(a0, b1)], edge_id[(a1, b1)],
-                           edge_id[(a1, b0)]]
-            sizes[case] = 4
-    return table, sizes
-
-
-CASE_EDGES, CASE_SIZES = _case_table()
-_EDGE_ENDS = np.array(_TET_EDGES, np.int32)
+TET_EDGES = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
+# the faces as vertex cycles seen from outside a tet with det[p1-p0, p2-p0, p3-p0] > 0
+FACES = ((1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1))
+_EDGE_OF = {**{e: k for k, e in enumerate(TET_EDGES)},
+            **{(b, a): k for k, (a, b) in enumerate(TET_EDGES)}}
 # a polygon edge's side value within this much of its rounding scale counts as 0 (errors
 # measured on rays aimed at polygon edges stay below 2^-24 of that scale)
 SIDE_ROUNDING = 2.0**-22
@@ -65,28 +49,39 @@ SIDE_ROUNDING = 2.0**-22
 SLOPE_ROUNDING = 2.0**-20
 
 
+def face_segments(above):
+    """The polygon's edges, one per tet face, from the vertices' sides.
+
+    Args:
+      above: 4 bool arrays (vertex i above the isovalue), broadcast together.
+
+    Returns:
+      4 (cut, start, end) triples, one per face of `FACES`: cut (bool) when the face's
+      vertices are on both sides, then the segment runs from the point on tet edge
+      `start` to the point on edge `end` (indices into `TET_EDGES`, int32 arrays).
+    """
+    out = []
+    for i, j, k in FACES:
+        a_i, a_j, a_k = above[i], above[j], above[k]
+        lone_i = (a_j == a_k) & (a_i != a_j)
+        lone_j = (a_i == a_k) & (a_j != a_i)
+        lone_k = (a_i == a_j) & (a_k != a_i)
+        lone_above = jnp.where(lone_i, a_i, jnp.where(lone_j, a_j, a_k))
+        # the lone vertex's incoming and outgoing cycle edges; the segment enters by the
+        # incoming one when the lone vertex is above (it then lies on the left)
+        e_ij, e_jk, e_ki = _EDGE_OF[i, j], _EDGE_OF[j, k], _EDGE_OF[k, i]
+        e_in = jnp.where(lone_i, e_ki, jnp.where(lone_j, e_ij, e_jk))
+        e_out = jnp.where(lone_i, e_ij, jnp.where(lone_j, e_jk, e_ki))
+        out.append((lone_i | lone_j | lone_k, jnp.where(lone_above, e_in, e_out),
+                    jnp.where(lone_above, e_out, e_in)))
+    return out
+
+
 def tet_gradient(p, f):
     """Gradient [..., 3] of the linear field with values f [..., 4] at vertices p [..., 4, 3]
     (zero for a flat tet)."""
-    return _gradient_and_scale(p, f)[0]
-
-
-def _gradient_and_scale(p, f):
-    """`tet_gradient` [..., 3] and the scale [..., 3] of its rounding: the same sum with
-    absolute values, so that g . d is 0 up to rounding where |g . d| <~ eps |d| . scale."""
-    e = p[..., 1:, :] - p[..., :1, :]                                   # [..., 3, 3]
-    df = f[..., 1:] - f[..., :1]
-    c1 = jnp.cross(e[..., 1, :], e[..., 2, :])
-    c2 = jnp.cross(e[..., 2, :], e[..., 0, :])
-    c3 = jnp.cross(e[..., 0, :], e[..., 1, :])
-    det = jnp.sum(e[..., 0, :] * c1, axis=-1)
-    num = df[..., 0, None] * c1 + df[..., 1, None] * c2 + df[..., 2, None] * c3
-    num_scale = (jnp.abs(df[..., 0, None] * c1) + jnp.abs(df[..., 1, None] * c2)
-                 + jnp.abs(df[..., 2, None] * c3))
-    ok = (det != 0)[..., None]
-    safe_det = jnp.where(ok, det[..., None], 1.0)
-    return (jnp.where(ok, num / safe_det, 0.0),
-            jnp.where(ok, num_scale / jnp.abs(safe_det), 0.0))
+    grad, _ = _gradient_and_scale(_vertices(p), _unstack(f, 4))
+    return jnp.stack(grad, axis=-1)
 
 
 def isopolygon_hits(o, d, p, f, ids, iso, snap=0.0):
@@ -113,97 +108,170 @@ def isopolygon_hits(o, d, p, f, ids, iso, snap=0.0):
       t [P, M] (inf where the ray misses the polygon or the tet has none), and the
       marching-tets case [P, M] int32 (bit i: vertex i above).
     """
-    f = jnp.where(jnp.abs(f - iso) <= snap, iso, f)
-    strictly = f > iso
-    above = jnp.where(jnp.any(strictly, axis=-1, keepdims=True), strictly, f >= iso)
-    above = above.astype(jnp.int32)
-    case = above[..., 0] + 2 * above[..., 1] + 4 * above[..., 2] + 8 * above[..., 3]
-    edges = jnp.asarray(CASE_EDGES)[case]                                # [P, M, 4]
-    ends = jnp.asarray(_EDGE_ENDS)[edges]                                # [P, M, 4, 2]
-    # orient every edge from its lower global vertex id to the higher one
-    ia = jnp.take_along_axis(ids, ends[..., 0], axis=-1)
-    ib = jnp.take_along_axis(ids, ends[..., 1], axis=-1)
-    swap = ia > ib
-    lo_end = jnp.where(swap, ends[..., 1], ends[..., 0])
-    hi_end = jnp.where(swap, ends[..., 0], ends[..., 1])
-    pa = jnp.take_along_axis(p, lo_end[..., None], axis=-2)              # [P, M, 4, 3]
-    pb = jnp.take_along_axis(p, hi_end[..., None], axis=-2)
-    fa = jnp.take_along_axis(f, lo_end, axis=-1)
-    fb = jnp.take_along_axis(f, hi_end, axis=-1)
-    denom = fb - fa
-    w = jnp.where(denom != 0, (iso - fa) / jnp.where(denom != 0, denom, 1.0), 0.0)
-    # w is exactly 0 or 1 at an end on the isovalue: return that end bit-exactly
-    verts = jnp.where((w == 1)[..., None], pb, pa + w[..., None] * (pb - pa))  # [P, M, 4, 3]
-    # a point's key names what it lies on: its tet edge (global ids, low first), or the
-    # vertex itself when it is an end, which every tet edge out of the vertex then agrees on
-    key_lo = jnp.where(w == 1, jnp.maximum(ia, ib), jnp.minimum(ia, ib))
-    key_hi = jnp.where(w == 0, jnp.minimum(ia, ib), jnp.maximum(ia, ib))
-    side, tolerance = _edge_sides(o, d, verts, key_lo, key_hi,
-                                  jnp.max(jnp.abs(p), axis=(-2, -1)))
+    pv = _vertices(p)
+    fv = [jnp.where(jnp.abs(x - iso) <= snap, iso, x) for x in _unstack(f, 4)]
+    iv = _unstack(ids, 4)
+    strictly = [x > iso for x in fv]
+    some_strictly = strictly[0] | strictly[1] | strictly[2] | strictly[3]
+    above = [jnp.where(some_strictly, s, x >= iso) for s, x in zip(strictly, fv)]
+    case = sum(a.astype(jnp.int32) << i for i, a in enumerate(above))
+    points = [_edge_point(pv, fv, iv, a, b, iso) for a, b in TET_EDGES]
+    o3 = tuple(o[:, None, c] for c in range(3))
+    d3 = tuple(d[:, None, c] for c in range(3))
+    coord_scale = _max([jnp.abs(x) for v in pv for x in v])
+    inv_dd = 1.0 / _dot(d3, d3)
+    lower, upper, distinct = None, None, 0
+    for (i, j, k), (cut, start, end) in zip(FACES, face_segments(above)):
+        face_edges = (_EDGE_OF[i, j], _EDGE_OF[j, k], _EDGE_OF[k, i])
+        side, tolerance, length = _segment_side(
+            o3, d3, inv_dd, _pick(points, start, face_edges),
+            _pick(points, end, face_edges), coord_scale)
+        # a face that is not cut adds no edge (side 0 passes both tests)
+        side = jnp.where(cut, side, 0.0)
+        lo_k, hi_k = side >= -tolerance, side <= tolerance
+        lower = lo_k if lower is None else lower & lo_k
+        upper = hi_k if upper is None else upper & hi_k
+        distinct = distinct + (cut & length).astype(jnp.int32)
     # a side within rounding of 0 counts as 0: the ray touches that edge
-    inside = jnp.all(side >= -tolerance, axis=-1) | jnp.all(side <= tolerance, axis=-1)
+    inside = lower | upper
     # a polygon collapsed to a point or a segment (the isovalue at a vertex or along a tet
     # edge, the rest on one side) covers nothing: the tets around it hold the surface, if
     # any, and the side test would accept rays near the segment's whole line
-    distinct = (key_lo != jnp.roll(key_lo, -1, axis=-1)) | (key_hi != jnp.roll(key_hi, -1,
-                                                                                axis=-1))
-    has_poly = jnp.sum(distinct, axis=-1) >= 3
-    grad, grad_scale = _gradient_and_scale(p, f)
-    slope = jnp.sum(grad * d[:, None, :], axis=-1)
-    f_o = f[..., 0] + jnp.sum(grad * (o[:, None, :] - p[..., 0, :]), axis=-1)
+    has_poly = distinct >= 3
+    grad, grad_scale = _gradient_and_scale(pv, fv)
+    slope = _dot(grad, d3)
+    f_o = fv[0] + _dot(grad, _sub(o3, pv[0]))
     # a ray parallel to the plane up to rounding (it lies in it: every side is ~0 too) has
     # no single crossing; its t would be noise. The tets around take it where it leaves
     # the plane.
-    parallel = jnp.abs(slope) <= SLOPE_ROUNDING * jnp.sum(
-        jnp.abs(d)[:, None, :] * grad_scale, axis=-1)
+    parallel = jnp.abs(slope) <= SLOPE_ROUNDING * _dot(_abs(d3), grad_scale)
     ok = inside & has_poly & ~parallel
     t = jnp.where(ok, (iso - f_o) / jnp.where(slope != 0, slope, 1.0), jnp.inf)
     return t, case
 
 
-def _edge_sides(o, d, verts, key_lo, key_hi, coord_scale):
-    """Side of the ray o + t d [P, 3] of each polygon edge, from point k to point k + 1.
+def _edge_point(pv, fv, iv, a, b, iso):
+    """The isovalue's point on tet edge (a, b), interpolated from its lower global vertex
+    id to the higher, and what it lies on: (xyz tuple, key_lo, key_hi), the key being the
+    edge's global ids (low first), or the vertex itself (twice) when the point is an end,
+    which every tet edge out of that vertex then agrees on."""
+    ia, ib = iv[a], iv[b]
+    swap = ia > ib
+    fa, fb = jnp.where(swap, fv[b], fv[a]), jnp.where(swap, fv[a], fv[b])
+    pa = tuple(jnp.where(swap, y, x) for x, y in zip(pv[a], pv[b]))
+    pb = tuple(jnp.where(swap, x, y) for x, y in zip(pv[a], pv[b]))
+    denom = fb - fa
+    w = jnp.where(denom != 0, (iso - fa) / jnp.where(denom != 0, denom, 1.0), 0.0)
+    # w is exactly 0 or 1 at an end on the isovalue: return that end bit-exactly
+    xyz = tuple(jnp.where(w == 1, y, x + w * (y - x)) for x, y in zip(pa, pb))
+    low, high = jnp.minimum(ia, ib), jnp.maximum(ia, ib)
+    return xyz, jnp.where(w == 1, high, low), jnp.where(w == 0, low, high)
+
+
+def _segment_side(o, d, inv_dd, a, b, coord_scale):
+    """Side of the ray o + t d of the polygon edge from point a to point b, with its
+    rounding bound and whether the two points differ.
 
     Args:
-      verts: [P, M, 4, 3] polygon points in cyclic order (a triangle repeats its 3rd);
-        key_lo, key_hi: [P, M, 4] what each lies on (global ids); coord_scale: [P, M]
-        largest |coordinate| of the tet (the scale of the points' rounding).
+      o, d: ray tuples; inv_dd: 1 / d.d; a, b: (xyz, key_lo, key_hi) points as made by
+        `_edge_point`; coord_scale: largest |coordinate| of the tet (the scale of the
+        points' rounding).
 
     Returns:
-      side [P, M, 4] (one sign inside, exactly 0 on an edge of coinciding points) and
-      tolerance [P, M, 4] >= 0, the bound on its rounding.
+      side (one sign inside, exactly 0 for coinciding points), tolerance >= 0 (the bound on
+      its rounding) and distinct (bool: the points' keys differ).
     """
     # (a - r) . ((b - a) x d), with r the point of the ray nearest a, is computed with the
-    # edge's two points a, b in a canonical order (by key) and negated if the polygon runs
-    # the other way: a neighbour sharing the edge evaluates the very same expression, so
-    # the two values are exact negatives even where the compiler fuses a * b - c * d into
+    # edge's two points in a canonical order (by key) and negated if the polygon runs the
+    # other way: a neighbour sharing the edge evaluates the very same expression, so the
+    # two values are exact negatives even where the compiler fuses a * b - c * d into
     # FMAs (which breaks the antisymmetry of a plain cross product). It equals
     # d . ((a - o) x (b - o)) for any r on the ray, but a - r is short, so it rounds in
     # proportion to a's distance from the ray, not to its distance from the ray origin
     # (which along a grazing edge swamps the value).
-    nxt_lo, nxt_hi = jnp.roll(key_lo, -1, axis=-1), jnp.roll(key_hi, -1, axis=-1)
-    forward = ((key_lo < nxt_lo) | ((key_lo == nxt_lo) & (key_hi <= nxt_hi)))[..., None]
-    nxt_verts = jnp.roll(verts, -1, axis=-2)
-    first = jnp.where(forward, verts, nxt_verts)
-    edge = jnp.where(forward, nxt_verts, verts) - first
-    dd = d[:, None, None, :]
-    first_rel = first - o[:, None, None, :]
-    inv_dd = 1.0 / jnp.sum(d * d, axis=-1)[:, None, None, None]
-    offset = first_rel - (jnp.sum(first_rel * dd, axis=-1, keepdims=True) * inv_dd) * dd
-    normal = jnp.cross(edge, dd)                                         # [P, M, 4, 3]
-    side = jnp.sum(offset * normal, axis=-1)
-    side = jnp.where(forward[..., 0], side, -side)
+    (pa, a_lo, a_hi), (pb, b_lo, b_hi) = a, b
+    forward = (a_lo < b_lo) | ((a_lo == b_lo) & (a_hi <= b_hi))
+    first = tuple(jnp.where(forward, x, y) for x, y in zip(pa, pb))
+    edge = _sub(tuple(jnp.where(forward, y, x) for x, y in zip(pa, pb)), first)
+    first_rel = _sub(first, o)
+    along = _dot(first_rel, d) * inv_dd
+    offset = tuple(r - along * c for r, c in zip(first_rel, d))
+    normal = _cross(edge, d)
+    side = _dot(offset, normal)
+    side = jnp.where(forward, side, -side)
     # The bound covers the products (on the short offset) and the rounding of the offset
     # and of the interpolated points, on the scale of a - o and of the tet's coordinates:
     # a shift s of a changes the side by s . normal. A neighbour may compute the bound
     # differently: any bound >= 0 on both sides keeps the shared edge closed.
-    abs_normal = jnp.abs(normal)
-    bound = (jnp.sum(jnp.abs(first_rel) * abs_normal, axis=-1)
-             + 4.0 * coord_scale[..., None] * jnp.sum(abs_normal, axis=-1)
-             + _l1(offset) * _l1(edge) * _l1(d)[:, None, None])
-    return side, SIDE_ROUNDING * bound
+    abs_normal = _abs(normal)
+    bound = (_dot(_abs(first_rel), abs_normal) + 4.0 * coord_scale * _l1(abs_normal)
+             + _l1(offset) * _l1(edge) * _l1(d))
+    distinct = (a_lo != b_lo) | (a_hi != b_hi)
+    return side, SIDE_ROUNDING * bound, distinct
 
 
-def _l1(v):
-    """[...] sum of |components| of v [..., 3]."""
-    return jnp.sum(jnp.abs(v), axis=-1)
+def _gradient_and_scale(pv, fv):
+    """Gradient (tuple) of the linear field with values fv (4 arrays) at vertices pv (4
+    tuples), and the scale (tuple) of its rounding: the same sum with absolute values, so
+    that g . d is 0 up to rounding where |g . d| <~ eps |d| . scale. Zero for a flat tet."""
+    e = [_sub(pv[i], pv[0]) for i in (1, 2, 3)]
+    df = [fv[i] - fv[0] for i in (1, 2, 3)]
+    c = [_cross(e[1], e[2]), _cross(e[2], e[0]), _cross(e[0], e[1])]
+    det = _dot(e[0], c[0])
+    ok = det != 0
+    safe_det = jnp.where(ok, det, 1.0)
+    grad, scale = [], []
+    for axis in range(3):
+        terms = [df[i] * c[i][axis] for i in range(3)]
+        grad.append(jnp.where(ok, (terms[0] + terms[1] + terms[2]) / safe_det, 0.0))
+        scale.append(jnp.where(ok, (jnp.abs(terms[0]) + jnp.abs(terms[1]) + jnp.abs(terms[2]))
+                               / jnp.abs(safe_det), 0.0))
+    return tuple(grad), tuple(scale)
+
+
+def _vertices(p):
+    """[..., 4, 3] -> 4 tuples of 3 arrays [...]."""
+    return [tuple(p[..., i, c] for c in range(3)) for i in range(4)]
+
+
+def _unstack(x, n):
+    return [x[..., i] for i in range(n)]
+
+
+def _pick(points, index, candidates):
+    """The point (xyz, key_lo, key_hi) of `points` (one per tet edge) at `index`, which is
+    one of the 3 edge indices `candidates`."""
+    xyz, key_lo, key_hi = points[candidates[0]]
+    for k in candidates[1:]:
+        here = index == k
+        xyz = tuple(jnp.where(here, y, x) for x, y in zip(xyz, points[k][0]))
+        key_lo = jnp.where(here, points[k][1], key_lo)
+        key_hi = jnp.where(here, points[k][2], key_hi)
+    return xyz, key_lo, key_hi
+
+
+def _sub(a, b):
+    return tuple(x - y for x, y in zip(a, b))
+
+
+def _dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def _abs(a):
+    return tuple(jnp.abs(x) for x in a)
+
+
+def _l1(a):
+    return jnp.abs(a[0]) + jnp.abs(a[1]) + jnp.abs(a[2])
+
+
+def _max(xs):
+    out = xs[0]
+    for x in xs[1:]:
+        out = jnp.maximum(out, x)
+    return out
