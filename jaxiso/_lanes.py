@@ -55,6 +55,11 @@ def run_rays(step, busy, state, results, *, max_steps: int, steps: str, lanes=No
     order = jnp.argsort(~going, stable=True)
     queue = jax.tree_util.tree_map(lambda a: a[order], state)
     queue["idx"] = order.astype(jnp.int32)
+    # a last, retired row (its step count spent): lanes that find the queue empty load it,
+    # so an idle lane never looks busy to a step that reads the other lanes' states
+    retired = jax.tree_util.tree_map(lambda a: a[-1:], queue)
+    retired[steps] = jnp.full_like(retired[steps], max_steps)
+    queue = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), queue, retired)
 
     def write(res, s, target):
         return {k: res[k].at[target].set(s[k], mode="drop") for k in results}

@@ -50,9 +50,15 @@ class TetIsosurface:
     vertex_gradients: jax.Array | None
     normals: str = "flat"
 
-    # render keeps 4x4 tiles: persistent lanes measured slower (83k tets, 128^2: 10.4 s in
-    # tiles vs 14.1 s on 4096 lanes; with lanes nearly every iteration runs the leaf tests)
-    prefers_lanes = None
+    def prefers_lanes(self, method) -> bool:
+        """render: persistent lanes for large images. With leaf tests postponed until half
+        the lanes wait at a leaf, lanes beat the best tiles (replicated spheres, 256^2:
+        0.27 vs 0.32 s for 10k tets, 0.27-0.34 vs 1.10 s for 664k; benchmarks/NOTES.md)."""
+        return True
+
+    # render's tile below 2^16 rays: 16x16 was fastest with postponed leaf tests (same
+    # scenes at 128^2: 4x4 0.21 / 1.61 s, 8x8 0.10 / 0.89 s, 16x16 0.11 / 0.32 s)
+    preferred_tile = 16
 
     def __init__(self, mesh, isovalues, *, bvh="bih", leaf_size=8, clip_box=None,
                  time_step=0, normals="flat"):

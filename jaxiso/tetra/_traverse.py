@@ -7,10 +7,11 @@ split axis first and leaves a subtree by its octant's escape pointer (`_bvh`). O
 image, `jaxiso._lanes`); every iteration each walking ray looks at one node: it enters it
 when the ray's box test passes within [t_min, best t so far] and the node's value range
 holds an isovalue, otherwise skips it. A ray that enters a leaf takes its escape and waits
-until the packet's waiting rays have their leaves tested together, in one pass of the leaf
-test (under a `lax.cond`) when every busy ray waits (Aila and Laine's "postponed leaves";
-the test costs as much for one ray as for the packet); the loop ends when every ray has
-left the last node and has no leaf waiting.
+until enough of the packet's busy rays wait (`LEAF_FILL`), and then all waiting rays have
+their leaves tested together in one pass of the leaf test (under a `lax.cond`; as in Aila
+and Laine's 2009 "while-while" GPU traversal: the pass costs as much for one ray as for
+the whole packet). The
+loop ends when every ray has left the last node and has no leaf waiting.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ __all__ = ["traverse"]
 
 BOX_SLACK = 2.0**-20  # relative widening of the ray's [near, far] through a node's box
 SNAP = 2.0**-20  # vertex values this close to an isovalue, relative to max |value|, equal it
+LEAF_FILL = 0.5  # see traverse
 
 
 def _box_enter(o, inv_d, lo, hi, t0, t1):
@@ -42,7 +44,7 @@ def _box_enter(o, inv_d, lo, hi, t0, t1):
 
 
 def traverse(bvh, points, tets, values, isovalues, o, d, t_min, t_max, *, max_steps=None,
-             lanes=None, leaf_fill=None):
+             lanes=None, leaf_fill=LEAF_FILL):
     """Nearest crossing of each ray with any isosurface of the linear tets.
 
     Args:
@@ -54,9 +56,9 @@ def traverse(bvh, points, tets, values, isovalues, o, d, t_min, t_max, *, max_st
         over the packet (`jaxiso._lanes`; for a whole image). Same results.
       leaf_fill: a ray that enters a leaf waits there until at least this fraction of the
         busy rays wait at a leaf, and then all their leaves are tested at once (one pass
-        of the leaf test instead of one per ray). Default 1 for a packet (every busy ray
-        at a leaf or done); 0 (test as soon as any ray is at a leaf) on lanes, where
-        lanes without a ray must not hold the others up. Same results.
+        of the leaf test instead of one per ray). 0 tests as soon as any ray waits, 1 only
+        when every busy ray waits. Same results whatever the fraction; the default 0.5
+        measured fastest (benchmarks/NOTES.md).
 
     Returns:
       t [P] (inf on a miss), hit [P], which [P] isovalue index (-1), tet [P] (-1),
@@ -65,8 +67,6 @@ def traverse(bvh, points, tets, values, isovalues, o, d, t_min, t_max, *, max_st
     n_nodes = bvh.links.shape[0]
     if max_steps is None:
         max_steps = 2 * n_nodes + 8
-    if leaf_fill is None:
-        leaf_fill = 1.0 if lanes is None else 0.0
     p = o.shape[0]
     # one snapping distance for the whole mesh (see isopolygon_hits)
     snap = SNAP * jnp.max(jnp.abs(values))
