@@ -6,8 +6,9 @@ under replication, traversal work, rendering modalities, time-varying data, a pe
         [--only table51,table53,table54,modalities,timevarying,peers,accuracy]
         [--out benchmarks/results]
 
-Images run ``jax.jit(ji.render)`` (camera rays in tile order, the renderer's default tile),
-ray casts ``jax.jit(ji.intersect)`` on the same tile-ordered packets. Compile time (AOT
+Images run ``jax.jit(ji.render)`` as the renderer chooses (from 2^16 rays on 4096
+persistent lanes on the CPU, else in tiles; rows say which), ray casts
+``jax.jit(ji.intersect)`` in tile-ordered packets of PACKET_TILE^2 rays. Compile time (AOT
 ``lower().compile()``) is reported apart from run time: one warm-up call, then the median
 of `repeats` calls, each ``jax.block_until_ready``; an entry whose warm-up call takes longer
 than `slow_s` is timed by that call alone (repeats_used 0). Mrays/s = pixels / run s.
@@ -67,6 +68,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxiso as ji
+from jaxiso.render._render import _LANES_FROM, LANES
 from jaxiso.render._scene import default_tile
 from jaxiso.tetra import (
     TetIsosurface,
@@ -90,7 +92,7 @@ from _common import compile_cell, fmt, now, print_table, subsample  # noqa: E402
 SECTIONS = ("table51", "table53", "table54", "modalities", "timevarying", "peers",
             "accuracy")
 METHODS = ("bih", "sah")
-RENDER_TILE = default_tile()  # the packet edge render uses for scenes without arithmetic
+PACKET_TILE = default_tile()  # packet edge of the ray casts (intersect, traversal counts)
 PLAIN = ji.Shading()
 # Fields and isovalues. The wave's isovalue is off 0 because sin(k pi x) is exactly 0 on
 # many grid vertices, which would make the benchmark a test of ties.
@@ -146,7 +148,15 @@ def camera(v, size):
     return ji.Camera.look_at(v["eye"], v["target"], v["up"], v["fov"], size, size)
 
 
-def work_rays(direction, size, tile=RENDER_TILE):
+def render_mode(n_rays):
+    """How `ji.render` runs n_rays of a TetIsosurface (its own choice): "lanes 4096" or
+    "tile E"."""
+    if n_rays >= _LANES_FROM and jax.default_backend() == "cpu":
+        return f"lanes {LANES}"
+    return f"tile {TetIsosurface.preferred_tile}"
+
+
+def work_rays(direction, size, tile=PACKET_TILE):
     """Tile-ordered camera rays (o, d) [size^2, 3] framing the unit cube from `direction`."""
     r = camera(view((0, 0, 0), (1, 1, 1), direction), size).rays()
     return ji.to_tiles(r.origin, tile), ji.to_tiles(r.direction, tile)
@@ -296,10 +306,11 @@ class Bench(common.TimedBench):
         exe, compile_s, cached = self.render_exe(scene, cam, shading)
         _, timing = self.timed(lambda: exe(scene, cam))
         n = cam.width * cam.height
-        return dict(pixels=n, tile=RENDER_TILE, compile_s=compile_s, compile_cached=cached,
+        return dict(pixels=n, mode=render_mode(n), compile_s=compile_s,
+                    compile_cached=cached,
                     **timing, mrays_per_s=n / timing["run_s"] / 1e6)
 
-    def counts(self, scene, o, d, size, tile=RENDER_TILE):
+    def counts(self, scene, o, d, size, tile=PACKET_TILE):
         """`traverse_counts` of tile-ordered rays o, d: (info dict: compile and timing,
         hit, nodes, leaves [size^2] in raster order)."""
         exe, compile_s, cached = self.compiled(
@@ -312,7 +323,7 @@ class Bench(common.TimedBench):
     def intersect(self, scene, o, d, size):
         """jit(intersect) of rays o, d [size^2, 3] (raster order, run in tile order):
         (row, hit [size^2], t [size^2] float64)."""
-        tile = RENDER_TILE
+        tile = PACKET_TILE
         rays = ji.Rays(tile_order(o, size, tile), tile_order(d, size, tile))
         exe, compile_s, cached = self.compiled(
             "intersect", lambda s, r: ji.intersect(s, r, packet=tile * tile), scene, rays)
@@ -349,7 +360,7 @@ def table51(b, cfg):
     size, field = cfg["size"], cfg["t51_field"]
     cam = camera(view((0, 0, 0), (1, 1, 1)), size)
     print(f"== Table 5.1 analog: BIH vs SAH, cube_tets(n) x 6 tets, {field} field, "
-          f"{size}x{size} render (tile {RENDER_TILE}); build = median of "
+          f"{size}x{size} render ({render_mode(size * size)}); build = median of "
           f"{b.build_repeats} numpy builds, leaf size 8")
     rows = []
     for n in cfg["t51_n"]:
@@ -386,7 +397,7 @@ def table51(b, cfg):
             per = [r["build_ms"] / r["tets"] * 1e3 for r in rr]
             print(f"  {method}: build {', '.join(fmt(x, '.2f') for x in per)} us per tet")
     print()
-    return dict(size=size, field=field, tile=RENDER_TILE, rows=rows,
+    return dict(size=size, field=field, render_mode=render_mode(size * size), rows=rows,
                 build_target=dict(seconds=BUILD_TARGET_S, tets=largest["tets"],
                                   build_s=largest["build_ms"] / 1e3, checked=checked,
                                   met=met))
@@ -453,7 +464,7 @@ def table53(b, cfg):
 
 def table54(b, cfg):
     size, field = cfg["work_size"], cfg["t51_field"]
-    tile = RENDER_TILE
+    tile = PACKET_TILE
     print(f"== Table 5.4 analog: traversal work per ray, {field} field, {size}x{size} rays "
           f"in {tile}x{tile} packets; tet tests <= leaves x leaf size. Views: "
           + "; ".join(f"{k}: eye at {v[0]}" for k, v in WORK_VIEWS.items()))
