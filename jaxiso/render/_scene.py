@@ -8,7 +8,8 @@ that intersects one packet of rays (a flat batch [P]). Packets are tiles of neig
 pixels: a batched ``while_loop`` runs until its slowest lane is done, so coherent rays
 that finish together waste the least work (DESIGN.md: 8x8 tiles ran 13x faster than one
 vmap over a whole 512x512 image). `intersect` cuts any batch of rays into packets and
-runs them with ``lax.map``; `render` orders camera rays tile by tile first.
+runs them with ``lax.map``; `render` orders camera rays tile by tile first. `slab` is the
+ray-box clip the scenes share.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import jax.numpy as jnp
 
 from ._camera import Rays
 
-__all__ = ["Hits", "intersect", "to_tiles", "from_tiles", "default_tile"]
+__all__ = ["Hits", "intersect", "to_tiles", "from_tiles", "default_tile", "slab"]
 
 # Square tile edge used by render when none is given, per backend and arithmetic, from
 # the packet table of benchmarks/bench_implicit.py on the 2-core CPU: interval t-bisection
@@ -153,3 +154,15 @@ def from_tiles(x, tile: int, height: int, width: int):
     x = jnp.moveaxis(x, 1, 2)
     x = x.reshape((th * tile, tw * tile) + x.shape[4:])
     return x[:height, :width]
+
+
+def slab(q0, dq, lo, hi):
+    """Entry and exit t [P] of rays q0 + t dq through the boxes [lo, hi] (inclusive);
+    axis-parallel rays are inside an axis's slab for all t or for none."""
+    safe = jnp.where(dq == 0, 1.0, dq)
+    ta = (lo - q0) / safe
+    tb = (hi - q0) / safe
+    inside = (q0 >= lo) & (q0 <= hi)
+    near = jnp.where(dq == 0, jnp.where(inside, -jnp.inf, jnp.inf), jnp.minimum(ta, tb))
+    far = jnp.where(dq == 0, jnp.where(inside, jnp.inf, -jnp.inf), jnp.maximum(ta, tb))
+    return jnp.max(near, axis=-1), jnp.min(far, axis=-1)

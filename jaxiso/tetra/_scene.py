@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..render._scene import Hits
+from ..render._scene import Hits, slab
 from ._bvh import BVH, build_bvh, refit_jax
 from ._isopoly import tet_gradient
 from ._mesh import TetMesh
@@ -153,7 +153,7 @@ class TetIsosurface:
         points = jnp.asarray(self.mesh.points)
         tets = jnp.asarray(self.mesh.tets)
         values = jnp.asarray(self.mesh.values)[self.time_step]
-        t0, t1 = _slab(o, d, self.clip_lo, self.clip_hi)
+        t0, t1 = slab(o, d, self.clip_lo, self.clip_hi)
         t_lo = jnp.maximum(t_min, t0)
         t_hi = jnp.minimum(t_max, t1)
         stop = jax.lax.stop_gradient
@@ -186,14 +186,6 @@ class TetIsosurface:
         from ._bvh import memory_report
 
         return memory_report(self.bvh, self.mesh)
-
-
-def _slab(o, d, lo, hi):
-    inv = 1.0 / d
-    ta, tb = (lo - o) * inv, (hi - o) * inv
-    near = jnp.where(jnp.isnan(ta), -jnp.inf, jnp.minimum(ta, tb))
-    far = jnp.where(jnp.isnan(tb), jnp.inf, jnp.maximum(ta, tb))
-    return jnp.max(near, axis=-1), jnp.min(far, axis=-1)
 
 
 def _interpolate(p, vertex_values, x):

@@ -15,10 +15,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..implicit._scene import attach_t
-from ..render._scene import Hits
+from ..render._scene import Hits, slab
 from . import _cell, _octree
 from ._hierarchy import GridCells, MacrocellGrid, OctreeCells
-from ._traverse import slab, traverse, voxel_ray
+from ._traverse import traverse, voxel_ray
 
 __all__ = ["VolumeIsosurface"]
 

@@ -24,25 +24,13 @@ import numpy as np
 from .._lanes import run_rays
 from . import _cell
 
-__all__ = ["slab", "traverse", "voxel_ray"]
+__all__ = ["traverse", "voxel_ray"]
 
 
 def voxel_ray(origin, spacing, o, d):
     """World rays o + t d [P, 3] in voxel coordinates: q(t) = q0 + t dq (t unchanged)."""
     inv = 1.0 / spacing
     return (o - origin) * inv, d * inv
-
-
-def slab(q0, dq, lo, hi):
-    """Entry and exit t [P] of rays q0 + t dq through the boxes [lo, hi] (inclusive);
-    axis-parallel rays are inside an axis's slab for all t or for none."""
-    safe = jnp.where(dq == 0, 1.0, dq)
-    ta = (lo - q0) / safe
-    tb = (hi - q0) / safe
-    inside = (q0 >= lo) & (q0 <= hi)
-    near = jnp.where(dq == 0, jnp.where(inside, -jnp.inf, jnp.inf), jnp.minimum(ta, tb))
-    far = jnp.where(dq == 0, jnp.where(inside, jnp.inf, -jnp.inf), jnp.maximum(ta, tb))
-    return jnp.max(near, axis=-1), jnp.min(far, axis=-1)
 
 
 def _exit(q0, dq, lo, size, v):
