@@ -91,7 +91,10 @@ class Notebook:
         self.cells.append(new_code_cell(clean(text)))
 
     def write(self):
-        """Validates and writes the notebook (nbformat gives each cell a random id)."""
+        """Validates and writes the notebook. Cells get ids by position (nbformat's are
+        random), so regenerating an unchanged notebook changes nothing."""
+        for i, cell in enumerate(self.cells):
+            cell["id"] = f"cell-{i:03d}"
         nb = new_notebook(cells=self.cells, metadata=METADATA)
         nbformat.validate(nb)
         nbformat.write(nb, self.path)

@@ -43,7 +43,6 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from IPython.display import display
 
 import jaxiso as ji
 from jaxiso.implicit import csg

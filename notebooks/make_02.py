@@ -58,8 +58,14 @@ import numpy as np
 
 import jaxiso as ji
 from jaxiso.io import load_volume, save_volume
-from jaxiso.volume import (MacrocellGrid, OctreeVolume, VolumeIsosurface, VolumeSequence,
-                           data, lod_for)
+from jaxiso.volume import (
+    MacrocellGrid,
+    OctreeVolume,
+    VolumeIsosurface,
+    VolumeSequence,
+    data,
+    lod_for,
+)
 """, "256", more="""
 N = max(16, min(128, SIZE // 2))   # voxels per axis of the example volumes
 """, note=", {N}^3 volumes"))
