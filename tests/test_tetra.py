@@ -88,6 +88,30 @@ def test_postponed_leaf_tests_give_the_same_hits_and_work_whenever_they_fire():
             assert np.array_equal(a, b)
 
 
+@pytest.mark.parametrize("field, isovalues", [("sphere", (-0.15, 0.0, 0.15)),
+                                              ("random", (0.1, 0.12))])
+def test_several_isovalues_give_the_nearest_of_the_single_isovalue_hits(field, isovalues):
+    # a leaf pass tests one isovalue per tet where no tet of the pass holds two (nested
+    # spheres on tets smaller than their spacing, cut open by a clip box so that all are
+    # seen), else every isovalue (the close random-field pair);
+    # either way the hit is the nearest of what each isovalue alone gives
+    points, tets = data.cube_tets(12)
+    values = data.sphere_field(points) if field == "sphere" else data.random_field(points, 1)
+    clip = ((0.0, 0.0, 0.0), (0.55, 1.0, 1.0))
+    rays, *_ = _camera()
+    mesh = tet_mesh(points, tets, values)
+    bvh = TetIsosurface(mesh, isovalues).bvh
+    alone = [_trace(TetIsosurface(mesh, iso, bvh=bvh, clip_box=clip), rays)
+             for iso in isovalues]
+    t_alone = np.stack([np.asarray(h.t) for h in alone])
+    both = _trace(TetIsosurface(mesh, isovalues, bvh=bvh, clip_box=clip), rays)
+    t, hit = np.asarray(both.t), np.asarray(both.hit)
+    assert np.array_equal(hit, np.isfinite(t_alone).any(axis=0)) and hit.sum() > 40
+    assert len(set(t_alone.argmin(axis=0)[hit])) > 1  # more than one isovalue is seen
+    np.testing.assert_allclose(t[hit], t_alone.min(axis=0)[hit], rtol=1e-6)
+    assert np.array_equal(np.asarray(both.surface)[hit], t_alone.argmin(axis=0)[hit])
+
+
 def test_isovalues_equal_to_vertex_values_and_clip_box():
     values = np.random.default_rng(3).integers(0, 4, len(POINTS)).astype(np.float32)
     _compare(values, [1.0, 2.0])

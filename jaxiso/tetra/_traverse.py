@@ -10,11 +10,13 @@ holds an isovalue, otherwise skips it. A ray that enters a leaf takes its escape
 until enough of the packet's busy rays wait (`LEAF_FILL`), and then all waiting rays have
 their leaves tested together in one pass of the leaf test (under a `lax.cond`; as in Aila
 and Laine's 2009 "while-while" GPU traversal: the pass costs as much for one ray as for
-the whole packet). The
-loop ends when every ray has left the last node and has no leaf waiting.
+the whole packet). The loop ends when every ray has left the last node and has no leaf
+waiting.
 """
 
 from __future__ import annotations
+
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -112,16 +114,35 @@ def _leaf_hits(bvh, points, tets, values, isovalues, snap, s):
     ids = tets[tet_ids]                                                  # [P, L, 4]
     pts = points[ids]
     vals = values[ids]
-    best_t = jnp.full(tet_ids.shape, jnp.inf, jnp.float32)
-    best_k = jnp.full(tet_ids.shape, -1, jnp.int32)
-    for k in range(isovalues.shape[0]):
-        t_k, _ = isopolygon_hits(o, d, pts, vals, ids, isovalues[k], snap)
-        ok = used & (t_k >= t_min[:, None]) & (t_k <= t_max[:, None]) & (t_k < best_t)
-        best_t = jnp.where(ok, t_k, best_t)
-        best_k = jnp.where(ok, k, best_k)
-    j = jnp.argmin(best_t, axis=-1)[:, None]
-    return (jnp.take_along_axis(best_t, j, -1)[:, 0], jnp.take_along_axis(best_k, j, -1)[:, 0],
+    # A tet whose values (widened by the snap) miss an isovalue has no polygon of it, so
+    # pass j tests each slot's j-th held isovalue, and only while some slot holds j + 1:
+    # as many passes as the most isovalues one tet of the pass holds, not one per
+    # isovalue, with the same hits.
+    lo, hi = jnp.min(vals, axis=-1)[..., None], jnp.max(vals, axis=-1)[..., None]
+    holds = used[..., None] & (isovalues - hi <= 2 * snap) & (lo - isovalues <= 2 * snap)
+    rank = jnp.cumsum(holds, axis=-1)                                     # [P, L, K]
+    t = jnp.full(used.shape, jnp.inf, jnp.float32)
+    k = jnp.full(used.shape, -1, jnp.int32)
+    for j in range(isovalues.shape[0]):
+        pick = holds & (rank == j + 1)
+        has = jnp.any(pick, axis=-1)
+        index = jnp.argmax(pick, axis=-1).astype(jnp.int32)
+        one = functools.partial(_slot_hits, o, d, pts, vals, ids, isovalues[index], snap,
+                                has, t_min, t_max, index, t, k)
+        t, k = one() if j == 0 else jax.lax.cond(jnp.any(has), one, lambda: (t, k))
+    j = jnp.argmin(t, axis=-1)[:, None]
+    return (jnp.take_along_axis(t, j, -1)[:, 0], jnp.take_along_axis(k, j, -1)[:, 0],
             jnp.take_along_axis(tet_ids, j, -1)[:, 0])
+
+
+def _slot_hits(o, d, pts, vals, ids, iso, snap, used, t_min, t_max, index, best_t,
+               best_k):
+    """Fold the hits of isovalue `iso` [P, L] (one per leaf slot, scene index `index`)
+    into the nearest hit so far per slot (best_t [P, L], best_k [P, L], -1: none): slots
+    that are `used`, crossings within the ray's [t_min, t_max]."""
+    t, _ = isopolygon_hits(o, d, pts, vals, ids, iso, snap)
+    ok = used & (t >= t_min[:, None]) & (t <= t_max[:, None]) & (t < best_t)
+    return jnp.where(ok, t, best_t), jnp.where(ok, index, best_k)
 
 
 def _step(bvh, points, tets, values, isovalues, snap, leaf_fill, walking, s):
