@@ -68,7 +68,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxiso as ji
-from jaxiso.render._render import _LANES_FROM, LANES
+from jaxiso.render._render import LANES, _use_lanes
 from jaxiso.render._scene import default_tile
 from jaxiso.tetra import (
     TetIsosurface,
@@ -148,12 +148,12 @@ def camera(v, size):
     return ji.Camera.look_at(v["eye"], v["target"], v["up"], v["fov"], size, size)
 
 
-def render_mode(n_rays):
-    """How `ji.render` runs n_rays of a TetIsosurface (its own choice): "lanes 4096" or
+def render_mode(scene, n_rays):
+    """How `ji.render` runs n_rays of `scene` (the renderer's own choice): "lanes 4096" or
     "tile E"."""
-    if n_rays >= _LANES_FROM and jax.default_backend() == "cpu":
+    if _use_lanes(scene, None, n_rays):
         return f"lanes {LANES}"
-    return f"tile {TetIsosurface.preferred_tile}"
+    return f"tile {scene.preferred_tile}"
 
 
 def work_rays(direction, size, tile=PACKET_TILE):
@@ -306,7 +306,7 @@ class Bench(common.TimedBench):
         exe, compile_s, cached = self.render_exe(scene, cam, shading)
         _, timing = self.timed(lambda: exe(scene, cam))
         n = cam.width * cam.height
-        return dict(pixels=n, mode=render_mode(n), compile_s=compile_s,
+        return dict(pixels=n, mode=render_mode(scene, n), compile_s=compile_s,
                     compile_cached=cached,
                     **timing, mrays_per_s=n / timing["run_s"] / 1e6)
 
@@ -360,7 +360,7 @@ def table51(b, cfg):
     size, field = cfg["size"], cfg["t51_field"]
     cam = camera(view((0, 0, 0), (1, 1, 1)), size)
     print(f"== Table 5.1 analog: BIH vs SAH, cube_tets(n) x 6 tets, {field} field, "
-          f"{size}x{size} render ({render_mode(size * size)}); build = median of "
+          f"{size}x{size} render (the JSON rows say how it ran); build = median of "
           f"{b.build_repeats} numpy builds, leaf size 8")
     rows = []
     for n in cfg["t51_n"]:
@@ -397,7 +397,7 @@ def table51(b, cfg):
             per = [r["build_ms"] / r["tets"] * 1e3 for r in rr]
             print(f"  {method}: build {', '.join(fmt(x, '.2f') for x in per)} us per tet")
     print()
-    return dict(size=size, field=field, render_mode=render_mode(size * size), rows=rows,
+    return dict(size=size, field=field, rows=rows,
                 build_target=dict(seconds=BUILD_TARGET_S, tets=largest["tets"],
                                   build_s=largest["build_ms"] / 1e3, checked=checked,
                                   met=met))
