@@ -112,6 +112,34 @@ def test_several_isovalues_give_the_nearest_of_the_single_isovalue_hits(field, i
     assert np.array_equal(np.asarray(both.surface)[hit], t_alone.argmin(axis=0)[hit])
 
 
+def test_intersect_under_vmap_over_isovalues_and_eagerly_matches_jit():
+    # the traversal's while_loop and lax.cond batch under vmap (the cond becomes a select)
+    values = data.wave_field(POINTS)
+    scene = TetIsosurface(tet_mesh(POINTS, TETS, values), [0.0, 0.5])
+    rays, *_ = _camera()
+    levels = jnp.asarray([[0.0, 0.5], [-0.3, 0.2]], jnp.float32)
+    batched = jax.vmap(lambda iso: ji.intersect(scene.with_isovalues(iso), rays,
+                                                packet=64))(levels)
+    for i, iso in enumerate(levels):
+        one = _trace(scene.with_isovalues(iso), rays)
+        assert np.array_equal(np.asarray(batched.hit[i]), np.asarray(one.hit))
+        assert np.asarray(one.hit).sum() > 40
+        np.testing.assert_array_equal(np.asarray(batched.t[i]), np.asarray(one.t))
+    # the isopolygon kernel eagerly equals its jitted self (hit rays x the first 64 tets)
+    hit = np.asarray(batched.hit[0])
+    o, d = rays.origin[hit], rays.direction[hit]
+    cells = jnp.asarray(TETS)[:64][None].repeat(o.shape[0], 0)            # [P, 64, 4]
+    args = (o, d, jnp.asarray(POINTS)[cells], jnp.asarray(values)[cells], cells, 0.0)
+    with jax.disable_jit():
+        eager = isopolygon_hits(*args)[0]
+    jitted = _polygon_t(*args)
+    eager, jitted = np.asarray(eager), np.asarray(jitted)
+    assert np.array_equal(np.isfinite(eager), np.isfinite(jitted)) and np.isfinite(jitted).any()
+    # XLA may contract multiply-adds differently from op-by-op execution
+    np.testing.assert_allclose(eager[np.isfinite(eager)], jitted[np.isfinite(jitted)],
+                               rtol=1e-6)
+
+
 def test_isovalues_equal_to_vertex_values_and_clip_box():
     values = np.random.default_rng(3).integers(0, 4, len(POINTS)).astype(np.float32)
     _compare(values, [1.0, 2.0])
