@@ -26,7 +26,7 @@ from .render import (
 from .tetra import TetIsosurface, TetMesh, tet_mesh
 from .volume import MacrocellGrid, OctreeVolume, VolumeIsosurface, VolumeSequence, lod_for
 
-__version__ = "0.2.0"
+__version__ = "0.3.0"
 
 __all__ = ["Interval", "interval", "Affine", "extend", "register_rule", "ia", "aa",
            "arith", "surfaces", "ImplicitSurface", "Camera", "Rays", "Hits", "Image",
