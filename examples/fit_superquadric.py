@@ -55,7 +55,7 @@ def make_rays(size: int, views=VIEWS) -> ji.Rays:
 
 def depth(params, rays, eps):
     """Depth [N] (t, BACKGROUND where the ray misses) and a pixel weight [N] in [0, 1]."""
-    hits = ji.intersect(make_scene(params), rays, eps=eps, packet=64)
+    hits = ji.intersect(make_scene(params).replace(eps=eps), rays)
     return jnp.where(hits.hit, hits.t, BACKGROUND), facing_weight(hits, rays)
 
 

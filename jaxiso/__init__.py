@@ -1,24 +1,25 @@
 """jaxiso: ray tracing implicit surfaces in JAX (after Knoll 2009).
 
-Layers: inclusion arithmetic (`Interval`, `Affine`, `extend`, `register_rule`), scenes
-(`ImplicitSurface`, CSG), and the render layer (`Camera`, `Rays`, `Hits`, `intersect`,
-`render`, `save_png`). `surfaces` is the catalogue of the seed's test surfaces.
-Structured volumes (`OctreeVolume`, `VolumeIsosurface`, ...) and tetrahedral meshes
-(`TetMesh`, `TetIsosurface`) implement the same scene protocol.
+Layers, bottom up: the core (`Rays`, `Hits`, `Plan`, the `Scene` protocol), inclusion
+arithmetic (`Interval`, `Affine`, `extend`, `register_rule`), scenes (`ImplicitSurface`,
+`CSG`, `VolumeIsosurface` over `OctreeVolume` / `MacrocellGrid`, `TetIsosurface` over
+`TetMesh`), and the render layer (`Camera`, `plan_for`, `intersect`, `render`,
+`save_png`). `surfaces` is the catalogue of the seed's test surfaces.
 """
 
 from . import arith
+from ._core import Hits, Plan, Rays, Scene
 from .arith import Affine, Interval, aa, extend, ia, interval, register_rule
 from .implicit import ImplicitSurface, surfaces
+from .implicit.csg import CSG
 from .render import (
     Camera,
-    Hits,
     Image,
     Light,
-    Rays,
     Shading,
     from_tiles,
     intersect,
+    plan_for,
     render,
     save_png,
     to_tiles,
@@ -29,7 +30,8 @@ from .volume import MacrocellGrid, OctreeVolume, VolumeIsosurface, VolumeSequenc
 __version__ = "0.3.0"
 
 __all__ = ["Interval", "interval", "Affine", "extend", "register_rule", "ia", "aa",
-           "arith", "surfaces", "ImplicitSurface", "Camera", "Rays", "Hits", "Image",
+           "arith", "surfaces", "ImplicitSurface", "CSG", "Camera", "Rays", "Hits", "Image",
+           "Scene", "Plan", "plan_for",
            "Light", "Shading", "intersect", "render", "save_png", "to_tiles",
            "from_tiles", "OctreeVolume", "VolumeIsosurface", "MacrocellGrid",
            "VolumeSequence", "lod_for", "TetMesh", "tet_mesh", "TetIsosurface", "__version__"]

@@ -75,9 +75,10 @@ def _gallery(args) -> int:
         entry = surfaces.get(name)
         scene = surfaces.scene(name)
         cam = surfaces.camera(name, args.size)
-        options = {} if args.arithmetic is None else {"arithmetic": args.arithmetic}
+        if args.arithmetic is not None:
+            scene = scene.replace(arithmetic=args.arithmetic)
         t0 = time.perf_counter()
-        img = render(scene, cam, shading=shading, **options)
+        img = render(scene, cam, shading=shading)
         dt = time.perf_counter() - t0
         path = save_png(img, os.path.join(args.out, f"{name}.png"))
         covered = float(np.mean(np.any(np.abs(img - np.asarray(shading.background)) > 1e-3,

@@ -40,7 +40,7 @@ REF_EPS = 2.0**-22  # reference bisection precision (relative to the clipped seg
 
 @functools.partial(jax.jit, static_argnames=("options",))
 def _trace(scene, rays, options):
-    return ji.intersect(scene, rays, **dict(options))
+    return ji.intersect(scene.replace(**dict(options)), rays)
 
 
 def trace(scene, rays, **options):
@@ -428,9 +428,9 @@ def test_render_matrix(name, method, arithmetic):
         options["arithmetic"] = arithmetic
     if name in CSG_NAMES and method not in (None, "t-bisection", "k-bisection"):
         with pytest.raises(ValueError, match="t-bisection"):
-            ji.render(scene, cam, **options)
+            ji.render(scene.replace(**options), cam)
         return
-    img = np.asarray(ji.render(scene, cam, **options))
+    img = np.asarray(ji.render(scene.replace(**options), cam))
     assert img.shape == (RENDER_SIZE, RENDER_SIZE, 3)
     assert np.all(np.isfinite(img))
     assert np.all((img >= 0.0) & (img <= 1.0))

@@ -64,8 +64,8 @@ def radius2(x, y, z):
 
 
 def traced_t(scene, r=None, eps=FINE, **options):
-    h = ji.intersect(scene, rays() if r is None else r, eps=eps, rounding="outward",
-                     **options)
+    h = ji.intersect(scene.replace(eps=eps, rounding="outward", **options),
+                     rays() if r is None else r)
     return jnp.where(h.hit, h.t, 0.0)
 
 
@@ -116,7 +116,7 @@ def test_root_on_a_piece_boundary_is_found(method):
 
     @jax.jit
     def trace(eps):
-        h = ji.intersect(UNIT, ray, eps=eps, method=method)
+        h = ji.intersect(UNIT.replace(eps=eps, method=method), ray)
         return h.t[0], h.hit[0]
 
     for eps in (2.0**-11, 2.0**-16, 2.0**-20):
@@ -228,7 +228,7 @@ def test_two_isovalues_jacobian():
 
     def t_of_isos(isos):
         scene = ji.ImplicitSurface(radius2, LO, HI, isovalues=isos)
-        h = ji.intersect(scene, ji.Rays(*_f32(o, d)), eps=FINE, rounding="outward")
+        h = ji.intersect(scene.replace(eps=FINE, rounding="outward"), ji.Rays(*_f32(o, d)))
         return jnp.where(h.hit, h.t, 0.0), h.surface
 
     def exact(isos):
@@ -260,8 +260,8 @@ def test_miss_gives_zero_gradient_not_nan():
     o, d = _f32(o, d)  # ray 0 misses the box; rays 2 and 3 cross it but miss the sphere
 
     def loss(p, o, d):
-        h = ji.intersect(ji.ImplicitSurface(sphere_r, LO, HI, params={"r": p}),
-                         ji.Rays(o, d), eps=FINE, rounding="outward")
+        h = ji.intersect(ji.ImplicitSurface(sphere_r, LO, HI, params={"r": p}, eps=FINE,
+                                            rounding="outward"), ji.Rays(o, d))
         return jnp.where(h.hit, h.t, 0.0), h.hit
 
     _, hit = jax.jit(loss)(jnp.float32(1.0), o, d)
@@ -324,8 +324,9 @@ def test_render_differentiable_in_params():
     light = ji.Light((0.6, -0.5, 0.8))
 
     def image(r):
-        scene = ji.ImplicitSurface(sphere_r, LO, HI, params={"r": r})
-        img = ji.render(scene, cam, light=light, eps=FINE, rounding="outward")
+        scene = ji.ImplicitSurface(sphere_r, LO, HI, params={"r": r}, eps=FINE,
+                                   rounding="outward")
+        img = ji.render(scene, cam, light=light)
         assert isinstance(img, jax.Array)  # a jax array under transformation
         return img
 

@@ -85,7 +85,7 @@ def test_tiles_roundtrip(h, w, tile):
 def test_sphere_matches_analytic(method, arithmetic):
     eps = 2.0**-12
     rays = CAM.rays()
-    hits = ji.intersect(_scene(), rays, method=method, arithmetic=arithmetic, eps=eps)
+    hits = ji.intersect(_scene().replace(method=method, arithmetic=arithmetic, eps=eps), rays)
     t_ref = _analytic(rays.origin, rays.direction).reshape(SIZE, SIZE)
     assert np.array_equal(np.asarray(hits.hit), np.isfinite(t_ref))
     both = np.isfinite(t_ref)
@@ -107,7 +107,7 @@ def test_eager_jit_vmap_agree_and_persistent_lanes():
     rays = CAM.rays()
     eager = ji.intersect(_scene(), rays)
     jitted = jax.jit(lambda s, r: ji.intersect(s, r))(_scene(), rays)
-    lanes = ji.intersect(_scene(), rays, packet=SIZE * SIZE, lanes=64)
+    lanes = ji.intersect(_scene(), rays, plan=ji.Plan(tile=4, lanes=64))
     for h in (jitted, lanes):
         np.testing.assert_array_equal(np.asarray(h.hit), np.asarray(eager.hit))
         np.testing.assert_allclose(np.asarray(h.t), np.asarray(eager.t), rtol=1e-6)
@@ -198,8 +198,8 @@ def test_render_sharded_over_devices_equals_single_device():
         one = ji.render(scene, cam)
         four = ji.render(scene, cam, devices=jax.devices())
         mesh = jax.sharding.Mesh(np.array(jax.devices()), ("tiles",))
-        four_mesh = ji.render(scene, cam, devices=mesh, tile=4)
-        lanes = ji.render(scene, cam, devices=jax.devices(), lanes=32)
+        four_mesh = ji.render(scene, cam, devices=mesh, plan=ji.Plan(tile=4))
+        lanes = ji.render(scene, cam, devices=jax.devices(), plan=ji.Plan(tile=4, lanes=32))
         assert np.allclose(one, four, atol=1e-6) and np.allclose(one, four_mesh, atol=1e-6)
         assert np.allclose(one, lanes, atol=1e-5)
         assert (one.sum(-1) < 2.9).sum() > 20
@@ -216,7 +216,7 @@ def test_render_sharded_over_devices_equals_single_device():
 def test_axis_parallel_rays_and_camera_inside():
     ortho = ji.Camera.orthographic_view((0.0, 0.0, 3.0), (0, 0, 0), (0, 1, 0), 1.2, 16, 16)
     rays = ortho.rays()
-    hits = ji.intersect(_scene(), rays, eps=2.0**-14)
+    hits = ji.intersect(_scene().replace(eps=2.0**-14), rays)
     t_ref = _analytic(rays.origin, rays.direction).reshape(16, 16)
     assert np.array_equal(np.asarray(hits.hit), np.isfinite(t_ref))
     m = np.isfinite(t_ref)
@@ -264,7 +264,7 @@ def test_division_asymptotes_are_not_drawn():
     scene = ji.ImplicitSurface(lambda x, y, z: 1.0 / (x - 0.2), (-1.0,) * 3, (1.0,) * 3)
     cam = ji.Camera.look_at((0.2, -3.0, 0.3), (0.2, 0, 0), (0, 0, 1), 40.0, SIZE, SIZE)
     for arithmetic in ("interval", "affine"):
-        hits = ji.intersect(scene, cam.rays(), arithmetic=arithmetic)
+        hits = ji.intersect(scene.replace(arithmetic=arithmetic), cam.rays())
         assert not np.any(np.asarray(hits.hit)), arithmetic
     # y = 1/x has a real surface next to the pole: it is drawn, the pole plane is not
     hyper = ji.ImplicitSurface(lambda x, y, z: y - 1.0 / x, (-2.0,) * 3, (2.0,) * 3)
@@ -311,7 +311,7 @@ def test_image_png_roundtrip(tmp_path):
 def test_central_difference_normals_and_zero_gradients():
     rays = CAM.rays()
     grad = ji.intersect(_scene(), rays)
-    central = ji.intersect(_scene(), rays, normals=1e-2)
+    central = ji.intersect(_scene().replace(normals=1e-2), rays)
     m = np.asarray(grad.hit)
     np.testing.assert_allclose(np.asarray(central.normal)[m], np.asarray(grad.normal)[m],
                                atol=1e-3)

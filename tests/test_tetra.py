@@ -14,14 +14,14 @@ import reference_tet64 as ref
 import jaxiso as ji
 from jaxiso.tetra import TetIsosurface, data, tet_mesh
 from jaxiso.tetra._isopoly import TET_EDGES, face_segments, isopolygon_hits
-from jaxiso.tetra._scene import _replace
 
 W = 20
 EYE = np.array([2.2, 1.7, 1.4])
 POINTS, TETS = data.cube_tets(5)
-_trace = jax.jit(lambda scene, rays: ji.intersect(scene, rays, packet=64))
+_trace = jax.jit(lambda scene, rays: ji.intersect(scene, rays, plan=ji.Plan(tile=8)))
 # the whole image on 64 persistent lanes, then 32 for the tail
-_trace_lanes = jax.jit(lambda scene, rays: ji.intersect(scene, rays, packet=W * W, lanes=64))
+_trace_lanes = jax.jit(lambda scene, rays: ji.intersect(scene, rays,
+                                                        plan=ji.Plan(tile=8, lanes=64)))
 _polygon_t = jax.jit(lambda o, d, p, f, ids, iso: isopolygon_hits(o, d, p, f, ids, iso)[0])
 
 
@@ -119,7 +119,7 @@ def test_intersect_under_vmap_over_isovalues_and_eagerly_matches_jit():
     rays, *_ = _camera()
     levels = jnp.asarray([[0.0, 0.5], [-0.3, 0.2]], jnp.float32)
     batched = jax.vmap(lambda iso: ji.intersect(scene.with_isovalues(iso), rays,
-                                                packet=64))(levels)
+                                                plan=ji.Plan(tile=8)))(levels)
     for i, iso in enumerate(levels):
         one = _trace(scene.with_isovalues(iso), rays)
         assert np.array_equal(np.asarray(batched.hit[i]), np.asarray(one.hit))
@@ -217,7 +217,7 @@ def test_closed_isosurface_is_watertight_at_polygon_vertices_and_edges():
                                      values.astype(np.float64), o.astype(np.float64),
                                      d.astype(np.float64), [0.0])
     scene = TetIsosurface(tet_mesh(POINTS, TETS, values), 0.0)
-    hits = ji.intersect(scene, ji.Rays(jnp.asarray(o), jnp.asarray(d)), packet=256)
+    hits = ji.intersect(scene, ji.Rays(jnp.asarray(o), jnp.asarray(d)), plan=ji.Plan(tile=16))
     hit = np.asarray(hits.hit)
     assert expect.sum() > 200
     assert np.all(hit[expect]), f"{int((~hit[expect]).sum())} holes"
@@ -368,7 +368,7 @@ def test_depth_is_differentiable_in_isovalue_and_vertex_values():
 
 def _with_values(scene, values):
     """The scene with traced vertex values (same BVH: bounds are not differentiated)."""
-    return _replace(scene, mesh=dataclasses.replace(scene.mesh, values=values))
+    return scene.replace(mesh=dataclasses.replace(scene.mesh, values=values))
 
 
 def test_degenerate_and_inverted_tets_are_reported_and_handled():

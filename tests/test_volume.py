@@ -35,9 +35,10 @@ def _view(shape, eye_dir=(1.6, 1.1, 0.9), inside=False):
     return cam, o, d
 
 
-_trace = jax.jit(lambda scene, rays: ji.intersect(scene, rays, packet=64))
+_trace = jax.jit(lambda scene, rays: ji.intersect(scene, rays, plan=ji.Plan(tile=8)))
 # the whole image as one queue on 64 persistent lanes, then 32 for the tail
-_trace_lanes = jax.jit(lambda scene, rays: ji.intersect(scene, rays, packet=W * W, lanes=64))
+_trace_lanes = jax.jit(lambda scene, rays: ji.intersect(scene, rays,
+                                                        plan=ji.Plan(tile=8, lanes=64)))
 
 
 def _compare(arr, iso, volume, *, inside=False, lanes=False, **scene_options):
@@ -311,7 +312,8 @@ def test_shadow_rays_trace_a_coarser_level_of_detail():
     rays = cam.rays().reshape((24 * 24,))
     lod = lod_for(cam, 0.5)
     scene = VolumeIsosurface(vol, 128.0, lod=lod)
-    shadow = jax.jit(lambda s, r: ji.intersect(s, r, packet=64, eps=8 * s.eps))(scene, rays)
+    shadow = jax.jit(lambda s, r: ji.intersect(s.coarser(8.0), r, plan=ji.Plan(tile=8)))(
+        scene, rays)
     coarse = _trace(scene.with_lod(lod.coarser(8.0)), rays)
     fine = _trace(scene, rays)
     np.testing.assert_array_equal(np.asarray(shadow.hit), np.asarray(coarse.hit))

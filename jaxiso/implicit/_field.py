@@ -14,6 +14,7 @@ import inspect
 import jax
 import jax.numpy as jnp
 
+from .._core import slab, unit_or_facing
 from ..arith import Affine, Interval, aa, extend, ia
 
 
@@ -93,19 +94,12 @@ def extended(g, arithmetic: str, rounding: str):
 
 
 def clip_to_box(rays_o, rays_d, lo, hi, t_min, t_max):
-    """Slab test: (t_enter, t_exit, inside) per ray ([P] each)."""
-    d = rays_d
-    inv = 1.0 / jnp.where(d == 0.0, 1.0, d)
-    ta = (lo - rays_o) * inv
-    tb = (hi - rays_o) * inv
-    near = jnp.where(d == 0.0, -jnp.inf, jnp.minimum(ta, tb))
-    far = jnp.where(d == 0.0, jnp.inf, jnp.maximum(ta, tb))
-    # a ray parallel to a slab and outside it never enters
-    outside = (d == 0.0) & ((rays_o < lo) | (rays_o > hi))
-    t0 = jnp.maximum(jnp.max(near, axis=-1), t_min)
-    t1 = jnp.minimum(jnp.min(far, axis=-1), t_max)
-    inside = (t0 <= t1) & ~jnp.any(outside, axis=-1) & jnp.isfinite(t1 - t0)
-    return t0, t1, inside
+    """(t_enter, t_exit, inside) per ray ([P] each) of the box [lo, hi] within
+    [t_min, t_max]."""
+    near, far = slab(rays_o, rays_d, lo, hi)
+    t0 = jnp.maximum(near, t_min)
+    t1 = jnp.minimum(far, t_max)
+    return t0, t1, (t0 <= t1) & jnp.isfinite(t1 - t0)
 
 
 def ray_segments(rays, lo, hi, t_min, t_max):
@@ -137,10 +131,7 @@ def point_normal(g, p, w, params, direction, stencil=None):
             return g(q[..., 0], q[..., 1], q[..., 2], w, params)
         grad = jnp.stack([(at(p + eye[i]) - at(p - eye[i])) / (2 * h) for i in range(3)],
                          axis=-1)
-    norm = jnp.linalg.norm(grad, axis=-1, keepdims=True)
-    ok = (norm > 0) & jnp.all(jnp.isfinite(grad), axis=-1, keepdims=True) & jnp.isfinite(norm)
-    facing = -direction / jnp.linalg.norm(direction, axis=-1, keepdims=True)
-    return jnp.where(ok, grad / jnp.where(ok, norm, 1.0), facing)
+    return unit_or_facing(grad, direction)
 
 
 __all__ = ["as_field", "ray_boxes", "enclosure", "contains_any", "extended",

@@ -8,7 +8,6 @@ rays through the implicit function theorem (`attach_t`), never through the loops
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 from collections.abc import Callable
 
@@ -16,7 +15,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..render._scene import Hits
+from .._core import (
+    Hits,
+    Plan,
+    SceneFields,
+    attach_t,
+    check_choice,
+    concrete,
+    pytree_dataclass,
+    static_field,
+)
 from . import _bisect
 from ._field import (
     as_field,
@@ -28,113 +36,189 @@ from ._field import (
     ray_segments,
 )
 
-__all__ = ["ImplicitSurface", "attach_t"]
+__all__ = ["ImplicitSurface", "METHODS", "ARITHMETICS"]
 
 DEFAULT_EPS = 2.0**-11
 
 
-@dataclasses.dataclass(frozen=True)
-class ImplicitSurface:
+METHODS = ("t-bisection", "k-bisection", "mitchell", "sampling", "sphere")
+ARITHMETICS = ("interval", "affine")
+ROUNDINGS = ("fast", "outward")
+
+# CPU packet edges from the packet table of benchmarks/bench_implicit.py on the 2-core CPU:
+# interval t-bisection was fastest in 4x4 tiles (Barth sextic 0.74 Mrays/s vs 0.57 in 8x8;
+# one vmap over the whole image 0.025), affine in 8x8. From 2^16 rays, t-bisection runs on
+# 4096 persistent lanes: at 512^2, interval 1.60 vs 0.88 Mrays/s in 4x4 tiles, affine 1.68
+# vs 0.41 in 8x8, at 4-6 s of compile against ~1-2 s. Other backends are unmeasured here
+# (no GPU was lent) and use 8x8 packets.
+_CPU_TILES = {"interval": 4, "affine": 8}
+LANES = 4096
+LANES_FROM = 2**16
+
+
+def _plan(method, arithmetic, n_rays, backend, lanes_ok=True) -> Plan:
+    if backend != "cpu":
+        return Plan(tile=8)
+    lanes = LANES if (lanes_ok and method == "t-bisection" and n_rays >= LANES_FROM) else None
+    return Plan(tile=_CPU_TILES[arithmetic], lanes=lanes)
+
+
+class _ImplicitOptions(SceneFields):
+    """Validation and plan shared by `ImplicitSurface` and `CSG` (numeric options are
+    traced fields, choices static ones)."""
+
+    def _validate(self):
+        """Normalise and check the fields (construction and every `replace`)."""
+        set_ = functools.partial(object.__setattr__, self)
+        check_choice("method", self.method, self._methods)
+        check_choice("arithmetic", self.arithmetic, ARITHMETICS)
+        check_choice("rounding", self.rounding, ROUNDINGS)
+        lo = jnp.asarray(self.lo, jnp.float32)
+        hi = jnp.asarray(self.hi, jnp.float32)
+        if lo.shape != (3,) or hi.shape != (3,):
+            raise ValueError(f"lo and hi must be 3-vectors, got {lo.shape} and {hi.shape}")
+        for name in ("w", "eps", "delta"):
+            if not hasattr(self, name):
+                continue
+            set_(name, jnp.asarray(getattr(self, name), jnp.float32))
+            if jnp.ndim(getattr(self, name)) != 0:
+                raise ValueError(f"{name} must be a scalar, got shape "
+                                 f"{jnp.shape(getattr(self, name))}")
+        set_("lo", lo)
+        set_("hi", hi)
+        if getattr(self, "lipschitz", None) is not None:
+            set_("lipschitz", jnp.asarray(self.lipschitz, jnp.float32))
+        _check_values(self)
+        _check_static(self)
+
+    @property
+    def has_params(self) -> bool:
+        return len(jax.tree_util.tree_leaves(self.params)) > 0
+
+    @property
+    def offset_scale(self):
+        return self.eps
+
+    def coarser(self, factor):
+        """Shadow rays: eps times `factor` (Sec. 6.4.6)."""
+        return self.replace(eps=self.eps * factor)
+
+    def preferred_plan(self, n_rays: int, backend: str) -> Plan:
+        return _plan(self.method, self.arithmetic, n_rays, backend)
+
+
+
+@pytree_dataclass
+class ImplicitSurface(_ImplicitOptions):
     """The level sets ``f = iso`` of a user function inside the box [lo, hi].
 
-    Attributes:
-      f: ``f(x, y, z[, w][, params])`` in plain jax.numpy on scalars (static: a new
-        function object means a new trace).
+    Traced fields (changing them never recompiles):
       lo, hi: [3] corners of the domain box.
-      params: pytree of arrays passed to f (traced: changing values never retraces).
+      params: pytree of arrays passed to f.
       isovalues: [I] level values drawn (each hit reports which one in `Hits.surface`).
       w: the 4th coordinate (time / morphing).
-      eps: default ray precision in world units (Eq. 6.19).
-      arithmetic: default inclusion arithmetic, "interval" or "affine".
-      method: default intersection method (see `jaxiso.intersect`).
+      eps: world-space length of the final piece (Eq. 6.19: depth ceil(log2(L / eps))).
+      delta: range tolerance: also accept a piece whose enclosure is narrower (0: off).
+      lipschitz: Lipschitz bound of f for method "sphere" (None otherwise).
+    Static fields (a new value compiles anew):
+      f: ``f(x, y, z[, w][, params])`` in plain jax.numpy on scalars.
+      arithmetic: "interval" or "affine".
+      method: "t-bisection" | "k-bisection" | "mitchell" | "sampling" | "sphere".
+      rounding: "fast" (the seed) or "outward" (enclosures hold against exact arithmetic).
+      normals: None (jax.grad of f) or the width of a central-difference stencil.
+      max_steps: iteration bound per ray (per packet for K-bisection), None: default;
+        rays that run out report no hit and steps == max_steps.
+      samples: point samples per ray ("sampling").
+      refine_steps: point refinement iterations ("mitchell", "sampling"), None: default.
     """
 
-    f: Callable
+    f: Callable = static_field()
     lo: jax.Array
     hi: jax.Array
     params: object = ()
     isovalues: jax.Array = (0.0,)
     w: jax.Array = 0.0
     eps: jax.Array = DEFAULT_EPS
-    arithmetic: str = "interval"
-    method: str = "t-bisection"
+    arithmetic: str = static_field("interval")
+    method: str = static_field("t-bisection")
+    delta: jax.Array = 0.0
+    lipschitz: jax.Array | None = None
+    rounding: str = static_field("fast")
+    normals: float | None = static_field(None)
+    max_steps: int | None = static_field(None)
+    samples: int = static_field(64)
+    refine_steps: int | None = static_field(None)
+
+    _methods = METHODS
 
     def __post_init__(self):
+        self._validate()
+
+    def _validate(self):
         if not callable(self.f):
             raise TypeError(f"f must be callable, got {type(self.f).__name__}")
-        lo = jnp.asarray(self.lo, jnp.float32)
-        hi = jnp.asarray(self.hi, jnp.float32)
-        if lo.shape != (3,) or hi.shape != (3,):
-            raise ValueError(f"lo and hi must be 3-vectors, got {lo.shape} and {hi.shape}")
-        _check_concrete(lo, hi, self.eps)
         iso = jnp.atleast_1d(jnp.asarray(self.isovalues, jnp.float32))
         if iso.ndim != 1 or iso.shape[0] == 0:
-            raise ValueError("isovalues must be a non-empty 1-D sequence")
-        if self.arithmetic not in ("interval", "affine"):
-            raise ValueError(f"arithmetic must be 'interval' or 'affine', got "
-                             f"{self.arithmetic!r}")
-        object.__setattr__(self, "lo", lo)
-        object.__setattr__(self, "hi", hi)
+            raise ValueError(f"isovalues must be a non-empty 1-D sequence, got shape "
+                             f"{iso.shape}")
         object.__setattr__(self, "isovalues", iso)
-        object.__setattr__(self, "w", jnp.asarray(self.w, jnp.float32))
-        object.__setattr__(self, "eps", jnp.asarray(self.eps, jnp.float32))
+        super()._validate()
         # fail early on a bad signature
         as_field(self.f, self.has_params)
-
-    @property
-    def has_params(self) -> bool:
-        return len(jax.tree_util.tree_leaves(self.params)) > 0
-
-    def prefers_lanes(self, method) -> bool:
-        """render: persistent lanes pay off for t-bisection of large images (measured in
-        jaxiso/render/_render.py)."""
-        return method == "t-bisection"
 
     @property
     def field(self):
         """``g(x, y, z, w, params)``."""
         return as_field(self.f, self.has_params)
 
-    def replace(self, **changes) -> ImplicitSurface:
-        return dataclasses.replace(self, **changes)
-
     def __call__(self, x, y, z):
-        """The field f - (nothing subtracted) at points."""
+        """The field f at points (the isovalues are not subtracted)."""
         return self.field(x, y, z, self.w, self.params)
 
-    def intersect_packet(self, rays, t_min, t_max, *, method=None, arithmetic=None,
-                         eps=None, delta=None, rounding="fast", normals=None,
-                         max_steps: int | None = None, lanes: int | None = None,
-                         **method_options) -> Hits:
-        method = self.method if method is None else method
-        arithmetic = self.arithmetic if arithmetic is None else arithmetic
-        eps = self.eps if eps is None else jnp.asarray(eps, jnp.float32)
+    def intersect_packet(self, rays, t_min, t_max, *, lanes: int | None = None) -> Hits:
+        """First hits of one packet of rays [P] (the scene protocol, `jaxiso.Scene`)."""
+        _check_lanes(self.method, lanes)
         scene = jax.lax.stop_gradient(self)
         t0, t1, inside, p, D = ray_segments(rays, scene.lo, scene.hi, t_min, t_max)
         g = scene.field
-        if method in ("t-bisection", "k-bisection"):
-            F = extended(g, arithmetic, rounding)
-            res = _interval_method(method, F, scene, p, D, inside, eps, delta,
-                                   arithmetic, max_steps, lanes)
+        if self.method in ("t-bisection", "k-bisection"):
+            F = extended(g, self.arithmetic, self.rounding)
+            res = _interval_method(F, scene, p, D, inside, lanes)
         else:
             from . import _baselines
-            res = _baselines.run(method, g, scene, p, D, inside, eps, arithmetic,
-                                 rounding, max_steps, **method_options)
+            res = _baselines.run(self.method, g, scene, p, D, inside, scene.eps,
+                                 self.arithmetic, self.rounding, self.max_steps,
+                                 **_method_options(scene))
         t_raw = jnp.where(res.hit, t0 + res.s * (t1 - t0), jnp.inf)
-        return finish_hits(g, self, rays, t_raw, res.hit, res.steps, normals)
+        return finish_hits(g, self, rays, t_raw, res.hit, res.steps, self.normals)
 
 
-def _interval_method(method, F, scene, p, D, inside, eps, delta, arithmetic, max_steps,
-                     lanes=None):
-    tol = jnp.float32(-1.0) if delta is None else jnp.float32(delta)
+def _method_options(scene):
+    if scene.method == "sphere":
+        return dict(lipschitz=scene.lipschitz)
+    opts = {} if scene.refine_steps is None else dict(refine_steps=scene.refine_steps)
+    if scene.method == "sampling":
+        opts["samples"] = scene.samples
+    return opts
+
+
+def _check_lanes(method, lanes):
+    if lanes is not None and method != "t-bisection":
+        raise ValueError(f"persistent lanes run t-bisection only; method {method!r} runs in "
+                         "packets: pass plan=jaxiso.Plan(tile=...) without lanes")
+
+
+def _interval_method(F, scene, p, D, inside, lanes=None):
+    tol = scene.delta
 
     def test(p, D, s0, s1):
-        boxes = ray_boxes(p, D, s0, s1, arithmetic)
-        r = enclosure(F, boxes, scene.w, scene.params, arithmetic)
+        boxes = ray_boxes(p, D, s0, s1, scene.arithmetic)
+        r = enclosure(F, boxes, scene.w, scene.params, scene.arithmetic)
         possible, finite = contains_any(r, scene.isovalues)
         return _bisect.BoxTest(possible, finite, (r.hi - r.lo) < tol)
 
-    return run_bisection(method, test, p, D, inside, eps, max_steps, lanes)
+    return run_bisection(scene.method, test, p, D, inside, scene.eps, scene.max_steps,
+                         lanes)
 
 
 def run_bisection(method, test, p, D, inside, eps, max_steps=None, lanes=None):
@@ -195,58 +279,65 @@ def finish_hits(g, scene, rays, t_raw, hit, steps, normals, which=None) -> Hits:
                 surface=jnp.where(hit, which, -1), steps=steps.astype(jnp.int32))
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
-def attach_t(g, t, o, d, w, params, iso, hit):
-    """The hit parameter t [P] of rays o + t d on g(., w, params) = iso, returned as is;
-    its derivative comes from the implicit function theorem:
-    dt = -(dg - diso) / (grad g . d), with dg the change of g at the fixed hit point."""
-    return t
 
 
-@attach_t.defjvp
-def _attach_t_jvp(g, primals, tangents):
-    t, o, d, w, params, iso, hit = primals
-    _, do, dd, dw, dparams, diso, _ = tangents
-
-    def at(q, w, params):
-        return g(q[0], q[1], q[2], w, params)
-
-    q = o + t[:, None] * d
-    dq = do + t[:, None] * dd
-    batched = jax.vmap(at, in_axes=(0, None, None))
-    _, dg = jax.jvp(batched, (q, w, params), (dq, dw, dparams))
-    grad = jax.vmap(jax.grad(at), in_axes=(0, None, None))(q, w, params)
-    denom = jnp.sum(grad * d, axis=-1)
-    ok = hit & (jnp.abs(denom) > 1e-20) & jnp.isfinite(denom)
-    dt = jnp.where(ok, -(dg - diso) / jnp.where(ok, denom, 1.0), 0.0)
-    return t, dt
-
-
-def _check_concrete(lo, hi, eps):
-    try:
-        lo_, hi_, e = (np.asarray(v) for v in (lo, hi, eps))
-    except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError):
-        return
-    if not (np.all(np.isfinite(lo_)) and np.all(np.isfinite(hi_))):
-        raise ValueError("the domain box must be finite")
-    if np.any(np.asarray(lo_) >= np.asarray(hi_)):
-        raise ValueError(f"the domain box needs lo < hi on every axis, got {lo_} and {hi_}")
-    if not np.all(np.asarray(e) > 0):
-        raise ValueError(f"eps must be positive, got {e}")
+def _check_values(scene) -> None:
+    """Concrete numeric fields (traced ones are checked where they were concrete)."""
+    lo, hi, eps = concrete(scene.lo), concrete(scene.hi), concrete(scene.eps)
+    if lo is not None and hi is not None:
+        if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+            raise ValueError(f"the domain box must be finite, got lo={lo} hi={hi}")
+        if np.any(lo >= hi):
+            raise ValueError(f"the domain box needs lo < hi on every axis, got lo={lo} "
+                             f"hi={hi}")
+    if eps is not None and not (np.isfinite(eps) and eps > 0):
+        raise ValueError(f"eps must be a finite positive length, got {eps}")
+    if lo is not None and hi is not None and eps is not None:
+        _check_depth(lo.astype(np.float64), hi.astype(np.float64), float(eps))
+    for name in ("isovalues", "w", "delta", "lipschitz"):
+        v = concrete(getattr(scene, name, None))
+        if v is not None and v.dtype != object and not np.all(np.isfinite(v)):
+            raise ValueError(f"{name} must be finite, got {v}")
+    delta = concrete(getattr(scene, "delta", 0.0))
+    if delta is not None and delta < 0:
+        raise ValueError(f"delta must be >= 0 (0: no range tolerance), got {delta}")
+    lip = getattr(scene, "lipschitz", None)
+    lip = concrete(lip) if lip is not None else None
+    if lip is not None and lip.dtype != object and not lip > 0:
+        raise ValueError(f"lipschitz must be positive, got {lip}")
 
 
-def _flatten(s: ImplicitSurface):
-    return ((s.lo, s.hi, s.params, s.isovalues, s.w, s.eps),
-            (s.f, s.arithmetic, s.method))
+def _check_depth(lo, hi, eps) -> None:
+    """eps must be reachable: at most 2^MAX_DEPTH pieces per ray (int32 positions) and no
+    finer than float32 resolves the box's coordinates."""
+    length = float(np.linalg.norm(hi - lo))
+    if not np.isfinite(np.float32(length)):
+        raise ValueError(f"the domain box diagonal {length:.3g} overflows float32; "
+                         "scale the model down")
+    finest = length * 2.0 ** -_bisect.MAX_DEPTH
+    if eps < finest:
+        raise ValueError(f"eps={eps:.3g} needs more than 2^{_bisect.MAX_DEPTH} bisection "
+                         f"pieces across the domain's diagonal {length:.3g}; use "
+                         f"eps >= {finest:.3g} or a smaller box")
+    ulp = float(np.max(np.maximum(np.abs(lo), np.abs(hi)))) * 2.0**-23
+    if eps < ulp:
+        raise ValueError(f"eps={eps:.3g} is below float32 resolution ({ulp:.3g}) at the "
+                         f"domain's coordinates (up to {ulp * 2**23:.3g}); use eps >= "
+                         f"{ulp:.3g} or translate and scale the model nearer the origin")
 
 
-def _unflatten(aux, children):
-    s = object.__new__(ImplicitSurface)
-    for name, v in zip(("lo", "hi", "params", "isovalues", "w", "eps"), children):
-        object.__setattr__(s, name, v)
-    for name, v in zip(("f", "arithmetic", "method"), aux):
-        object.__setattr__(s, name, v)
-    return s
-
-
-jax.tree_util.register_pytree_node(ImplicitSurface, _flatten, _unflatten)
+def _check_static(scene) -> None:
+    n = scene.normals
+    if n is not None and (isinstance(n, bool) or not isinstance(n, (int, float))
+                          or not np.isfinite(n) or n <= 0):
+        raise ValueError(f"normals must be None (jax.grad) or a positive stencil width, "
+                         f"got {n!r}")
+    for name, least in (("max_steps", 1), ("samples", 2), ("refine_steps", 1)):
+        if not hasattr(scene, name) or (getattr(scene, name) is None and name != "samples"):
+            continue
+        v = getattr(scene, name)
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < least:
+            raise ValueError(f"{name} must be an int >= {least}, got {v!r}")
+    if scene.method == "sphere" and getattr(scene, "lipschitz", None) is None:
+        raise ValueError("method 'sphere' needs a Lipschitz bound of f: "
+                         "lipschitz=L on the scene")

@@ -22,10 +22,10 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 
-from ..render._scene import Hits
+from .._core import Hits, pytree_dataclass, static_field
 from ._bisect import BoxTest as _BoxTest
 from ._field import as_field, enclosure, extended, ray_boxes, ray_segments
-from ._scene import DEFAULT_EPS, _check_concrete, finish_hits, run_bisection
+from ._scene import DEFAULT_EPS, _check_lanes, _ImplicitOptions, finish_hits, run_bisection
 
 __all__ = ["Solid", "union", "intersection", "difference", "complement", "CSG"]
 
@@ -101,49 +101,43 @@ def _eval3(expr, leaves, states):
     return pt, pf
 
 
-@dataclasses.dataclass(frozen=True)
-class CSG:
+@pytree_dataclass
+class CSG(_ImplicitOptions):
     """Scene: the boundary of a CSG expression of solids inside the box [lo, hi].
 
-    Attributes mirror `ImplicitSurface` (params, w, eps, arithmetic are shared by all
-    leaves); `Hits.surface` is the index of the leaf hit, in `leaves` order.
+    Fields mirror `ImplicitSurface` (params, w, eps are traced and shared by all leaves;
+    expr, arithmetic, method, rounding, normals, max_steps are static); `Hits.surface` is
+    the index of the leaf hit, in `leaves` order. Methods: "t-bisection", "k-bisection".
     """
 
-    expr: object
+    expr: object = static_field()
     lo: jax.Array
     hi: jax.Array
     params: object = ()
     w: jax.Array = 0.0
     eps: jax.Array = DEFAULT_EPS
-    arithmetic: str = "interval"
-    method: str = "t-bisection"
+    arithmetic: str = static_field("interval")
+    method: str = static_field("t-bisection")
+    rounding: str = static_field("fast")
+    normals: float | None = static_field(None)
+    max_steps: int | None = static_field(None)
+
+    _methods = ("t-bisection", "k-bisection")
 
     def __post_init__(self):
+        self._validate()
+
+    def _validate(self):
         object.__setattr__(self, "expr", _node(self.expr))
-        lo = jnp.asarray(self.lo, jnp.float32)
-        hi = jnp.asarray(self.hi, jnp.float32)
-        if lo.shape != (3,) or hi.shape != (3,):
-            raise ValueError("lo and hi must be 3-vectors")
-        _check_concrete(lo, hi, self.eps)
         if not any(s.draw for s in self.leaves):
             raise ValueError("a CSG scene needs at least one Solid with draw=True")
-        object.__setattr__(self, "lo", lo)
-        object.__setattr__(self, "hi", hi)
-        object.__setattr__(self, "w", jnp.asarray(self.w, jnp.float32))
-        object.__setattr__(self, "eps", jnp.asarray(self.eps, jnp.float32))
+        super()._validate()
         for s in self.leaves:
             as_field(s.f, self.has_params)
 
     @property
     def leaves(self) -> list:
         return _leaves(self.expr, [])
-
-    @property
-    def has_params(self) -> bool:
-        return len(jax.tree_util.tree_leaves(self.params)) > 0
-
-    def replace(self, **changes) -> CSG:
-        return dataclasses.replace(self, **changes)
 
     @property
     def field(self):
@@ -158,21 +152,14 @@ class CSG:
             return jnp.take_along_axis(vals, i[..., None], axis=-1)[..., 0]
         return g
 
-    def intersect_packet(self, rays, t_min, t_max, *, method=None, arithmetic=None,
-                         eps=None, rounding="fast", normals=None, max_steps=None,
-                         lanes=None, delta=None, **method_options) -> Hits:
-        method = self.method if method is None else method
-        if method not in ("t-bisection", "k-bisection"):
-            raise ValueError(f"CSG scenes support 't-bisection' and 'k-bisection', got "
-                             f"{method!r}")
-        if method_options:
-            raise TypeError(f"unknown options for a CSG scene: {sorted(method_options)}")
-        arithmetic = self.arithmetic if arithmetic is None else arithmetic
-        eps = self.eps if eps is None else jnp.asarray(eps, jnp.float32)
+    def intersect_packet(self, rays, t_min, t_max, *, lanes: int | None = None) -> Hits:
+        """First hits of one packet of rays [P] (the scene protocol, `jaxiso.Scene`)."""
+        _check_lanes(self.method, lanes)
+        method, arithmetic, eps = self.method, self.arithmetic, self.eps
         scene = jax.lax.stop_gradient(self)
         leaves = self.leaves
         fields = [as_field(s.f, self.has_params) for s in leaves]
-        Fs = [extended(fi, arithmetic, rounding) for fi in fields]
+        Fs = [extended(fi, arithmetic, self.rounding) for fi in fields]
         t0, t1, inside, p, D = ray_segments(rays, scene.lo, scene.hi, t_min, t_max)
         o = jax.lax.stop_gradient(rays.origin)
         d = jax.lax.stop_gradient(rays.direction)
@@ -198,7 +185,7 @@ class CSG:
                 finite = finite & (~cand | jnp.isfinite(r.hi - r.lo))
             return _BoxTest(possible, finite, jnp.zeros_like(possible))
 
-        res = run_bisection(method, test, p, D, inside, eps, max_steps, lanes)
+        res = run_bisection(method, test, p, D, inside, eps, self.max_steps, lanes)
         t_raw = jnp.where(res.hit, t0 + res.s * (t1 - t0), jnp.inf)
         # which part: the drawn leaf nearest its zero set at the hit point
         pts = jax.lax.stop_gradient(o + jnp.where(res.hit, t_raw, 0.0)[:, None] * d)
@@ -206,23 +193,6 @@ class CSG:
                           for fi in fields], axis=-1)
         drawn = jnp.array([s.draw for s in leaves])
         which = jnp.argmin(jnp.where(drawn, jnp.abs(vals), jnp.inf), axis=-1)
-        return finish_hits(self.field, self, rays, t_raw, res.hit, res.steps, normals,
+        return finish_hits(self.field, self, rays, t_raw, res.hit, res.steps, self.normals,
                            which=which.astype(jnp.int32))
 
-
-
-
-def _flatten(s: CSG):
-    return ((s.lo, s.hi, s.params, s.w, s.eps), (s.expr, s.arithmetic, s.method))
-
-
-def _unflatten(aux, children):
-    s = object.__new__(CSG)
-    for name, v in zip(("lo", "hi", "params", "w", "eps"), children):
-        object.__setattr__(s, name, v)
-    for name, v in zip(("expr", "arithmetic", "method"), aux):
-        object.__setattr__(s, name, v)
-    return s
-
-
-jax.tree_util.register_pytree_node(CSG, _flatten, _unflatten)

@@ -364,7 +364,7 @@ def scene(name: str, **overrides):
 
 def camera(name: str, width: int = 256, height: int | None = None):
     """The default `Camera` of a catalogue entry at the given image size."""
-    from ..render import Camera
+    from .._camera import Camera
 
     entry = get(name)
     return Camera.look_at(entry.eye, entry.target, entry.up, entry.fov, width, height)

@@ -1,9 +1,10 @@
-"""Render layer: rays, cameras, packets, the scene protocol, shading and images."""
+"""Render layer: cameras, the execution plan, `intersect`, shading and images."""
 
-from ._camera import Camera, Rays
+from .._core import Hits, Plan, Rays, Scene
+from .._camera import Camera
 from ._image import Image, save_png
+from ._plan import from_tiles, intersect, plan_for, to_tiles
 from ._render import Light, Shading, render
-from ._scene import Hits, from_tiles, intersect, to_tiles
 
-__all__ = ["Camera", "Rays", "Hits", "intersect", "render", "Light", "Shading", "Image",
-           "save_png", "to_tiles", "from_tiles"]
+__all__ = ["Camera", "Rays", "Hits", "Plan", "Scene", "plan_for", "intersect", "render",
+           "Light", "Shading", "Image", "save_png", "to_tiles", "from_tiles"]

@@ -41,6 +41,10 @@ def save_png(img, path) -> str:
     a = np.asarray(img)
     if a.ndim not in (2, 3):
         raise ValueError(f"save_png needs an [H, W] or [H, W, C] image, got shape {a.shape}")
+    bad = ~np.isfinite(a)
+    if bad.any():
+        raise ValueError(f"the image has {int(bad.sum())} NaN or inf values (of {a.size}); "
+                         "a PNG of them would be a wrong picture")
     path = os.fspath(path)
     parent = os.path.dirname(path)
     if parent:

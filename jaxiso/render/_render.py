@@ -17,9 +17,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from ._camera import Camera, Rays
+from .._core import Plan, Rays, concrete, facing
+from .._camera import Camera
 from ._image import Image
-from ._scene import default_tile, from_tiles, intersect, to_tiles
+from ._plan import _check_scene, from_tiles, intersect_traced, plan_for, to_tiles
 
 __all__ = ["Light", "Shading", "render", "DEFAULT_COLORS"]
 
@@ -41,6 +42,17 @@ class Light:
     def __post_init__(self):
         object.__setattr__(self, "vector", jnp.asarray(self.vector, jnp.float32))
         object.__setattr__(self, "color", jnp.asarray(self.color, jnp.float32))
+        if self.vector.shape != (3,) or self.color.shape != (3,):
+            raise ValueError(f"Light vector and color must be 3-vectors, got shapes "
+                             f"{self.vector.shape} and {self.color.shape}")
+        v, c = concrete(self.vector), concrete(self.color)
+        if v is not None and not np.all(np.isfinite(v)):
+            raise ValueError(f"Light vector must be finite, got {v}")
+        if v is not None and not self.point and not np.any(v != 0):
+            raise ValueError("a directional Light needs a nonzero direction vector (it "
+                             "points towards the light), got (0, 0, 0)")
+        if c is not None and not (np.all(np.isfinite(c)) and np.all(c >= 0)):
+            raise ValueError(f"Light color must be finite and >= 0, got {c}")
 
 
 @jax.tree_util.register_dataclass
@@ -78,8 +90,20 @@ class Shading:
                      "shininess", "opacity", "reflectivity"):
             object.__setattr__(self, name, jnp.asarray(getattr(self, name), jnp.float32))
         c = self.colors
-        if c.ndim != 2 or c.shape[-1] != 3:
-            raise ValueError(f"colors must be [C, 3], got shape {c.shape}")
+        if c.ndim != 2 or c.shape[-1] != 3 or c.shape[0] == 0:
+            raise ValueError(f"colors must be [C, 3] with C >= 1, got shape {c.shape}")
+        for name in ("colors", "background", "ambient", "diffuse", "specular",
+                     "shininess", "opacity", "reflectivity"):
+            v = concrete(getattr(self, name))
+            if v is not None and not np.all(np.isfinite(v)):
+                raise ValueError(f"Shading {name} must be finite, got {v}")
+        op = concrete(self.opacity)
+        if op is not None and not np.all((op >= 0) & (op <= 1)):
+            raise ValueError(f"Shading opacity must be in [0, 1], got {op}")
+        if not (isinstance(self.shadow_eps_scale, (int, float)) and
+                np.isfinite(self.shadow_eps_scale) and self.shadow_eps_scale >= 1):
+            raise ValueError(f"shadow_eps_scale must be a finite number >= 1, got "
+                             f"{self.shadow_eps_scale!r}")
         if self.layers < 1 or self.reflections < 0:
             raise ValueError("layers must be >= 1 and reflections >= 0")
         if self.layers > 1 and self.reflections > 0:
@@ -88,47 +112,35 @@ class Shading:
 
 
 def render(scene, camera: Camera, *, shading: Shading | None = None,
-           light: Light | None = None, tile: int | None = None, devices=None,
-           **options):
+           light: Light | None = None, devices=None, plan: Plan | None = None):
     """Ray trace `scene` through `camera` and shade the first hits.
 
     Args:
-      scene: any scene implementing the protocol (ImplicitSurface, CSG, ...).
+      scene: any scene implementing the protocol (`jaxiso.Scene`: ImplicitSurface, CSG,
+        VolumeIsosurface, TetIsosurface); its options (method, eps, ...) are its fields.
       camera: a `Camera`.
       shading: a `Shading` (default: opaque Phong, no shadows).
       light: a `Light` (default: directional, over the viewer's right shoulder).
-      tile: packet edge in pixels (packets of tile x tile rays); default: the scene's
-        `preferred_tile` if it has one, else the fastest measured for the backend and
-        arithmetic (`default_tile`). From 2^16 rays on,
-        CPU t-bisection runs on 4096 persistent lanes instead (faster per frame, slower
-        to compile); pass ``lanes=None`` to keep tiles.
       devices: None (default device), a list of devices or a `jax.sharding.Mesh`
         with one axis: camera tiles are split across them.
-      options: intersection options passed to the scene (method, arithmetic, eps,
-        delta, normals, ...).
+      plan: a `Plan` (default: `plan_for(scene, rays per device)`, the fastest measured
+        tile edge or persistent lanes for the scene and backend).
 
     Returns:
       Float [H, W, 3] colours in [0, 1]: an `Image` (numpy; shows inline in Jupyter)
       when called eagerly, a jax array under jit/grad.
     """
+    _check_scene(scene)
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera must be a jaxiso.Camera, got {type(camera).__name__}")
     shading = Shading() if shading is None else shading
     light = Light() if light is None else light
-    if tile is None:
-        tile = getattr(scene, "preferred_tile", None) or default_tile(
-            options.get("arithmetic", getattr(scene, "arithmetic", "interval")))
-    tile = int(tile)
-    if tile < 1:
-        raise ValueError(f"tile must be >= 1, got {tile}")
     mesh = _as_mesh(devices)
-    n_rays = camera.width * camera.height
-    method = options.get("method", getattr(scene, "method", None))
-    if "lanes" not in options and _use_lanes(scene, method, n_rays):
-        options["lanes"] = LANES
-    # persistent lanes take the whole (per-device) image as one queue
     n_dev = 1 if mesh is None else mesh.devices.size
-    packet = -(-n_rays // n_dev) if options.get("lanes") else tile * tile
-    opts = tuple(sorted(options.items()))
-    img = _render(scene, camera, shading, light, tile, packet, mesh, opts)
+    plan = plan_for(scene, -(-camera.width * camera.height // n_dev)) if plan is None else plan
+    if not isinstance(plan, Plan):
+        raise TypeError(f"plan must be a jaxiso.Plan, got {type(plan).__name__}")
+    img = _render(scene, camera, shading, light, plan, mesh)
     if isinstance(img, jax.core.Tracer):
         return img
     return Image(jax.device_get(img))
@@ -149,36 +161,21 @@ def _as_mesh(devices):
     return Mesh(np.array(devs), ("tiles",))
 
 
-# Persistent lanes beat tiles on run time at 512^2 on the 2-core CPU (Barth sextic, eps
-# 2^-11: interval 1.60 vs 0.88 Mrays/s in 4x4 tiles, affine 1.68 vs 0.41 in 8x8) but
-# compile 4-6 s against ~1-2 s, so render uses them for t-bisection from 2^16 rays up,
-# on scenes that say they gain (`prefers_lanes`; CSG did not: sesc.csg at 256^2 ran
-# 0.80 vs 0.74 s and compiled 31 vs 8 s).
-LANES = 4096
-_LANES_FROM = 2**16
-
-
-def _use_lanes(scene, method, n_rays: int) -> bool:
-    prefers = getattr(scene, "prefers_lanes", None)
-    return (prefers is not None and prefers(method) and n_rays >= _LANES_FROM
-            and jax.default_backend() == "cpu")
-
-
-@functools.partial(jax.jit, static_argnums=(4, 5, 6, 7))
-def _render(scene, camera, shading, light, tile, packet, mesh, opts):
-    options = dict(opts)
+@functools.partial(jax.jit, static_argnums=(4, 5))
+def _render(scene, camera, shading, light, plan, mesh):
+    tile = plan.tile
     rays = camera.rays()
     h, w = camera.height, camera.width
     o = to_tiles(rays.origin, tile)
     d = to_tiles(rays.direction, tile)
 
     def shade_all(o, d):
-        return shade_rays(scene, Rays(o, d), shading, light, packet, options)
+        return shade_rays(scene, Rays(o, d), shading, light, plan)
 
     if mesh is None:
         colors = shade_all(o, d)
     else:
-        colors = _sharded(shade_all, mesh, o, d, packet)
+        colors = _sharded(shade_all, mesh, o, d, plan.packet)
     return from_tiles(colors, tile, h, w)
 
 
@@ -197,24 +194,24 @@ def _sharded(fn, mesh, o, d, packet):
     return out[:n]
 
 
-def _scene_scale(scene):
-    lo = getattr(scene, "lo", None)
-    if lo is None:
-        return jnp.float32(1.0)
-    return jnp.linalg.norm(scene.hi - scene.lo)
+def _trace(scene, plan, rays, t_min=0.0, t_max=jnp.inf):
+    t_min = jnp.broadcast_to(jnp.asarray(t_min, jnp.float32), rays.shape)
+    t_max = jnp.broadcast_to(jnp.asarray(t_max, jnp.float32), rays.shape)
+    return intersect_traced(scene, rays, t_min, t_max, plan)
 
 
-def shade_rays(scene, rays: Rays, shading: Shading, light: Light, packet: int,
-               options: dict) -> jax.Array:
+def shade_rays(scene, rays: Rays, shading: Shading, light: Light, plan: Plan) -> jax.Array:
     """Colours [N, 3] of rays [N] (in packet order)."""
-    eps = options.get("eps", getattr(scene, "eps", 2.0**-11))
-    offset = jnp.maximum(4.0 * jnp.asarray(eps, jnp.float32), 1e-4 * _scene_scale(scene))
-    trace = functools.partial(intersect, scene, packet=packet, **options)
+    diagonal = jnp.linalg.norm(scene.hi - scene.lo)
+    # a finite offset even for unbounded scenes (a tet mesh without clip box is not)
+    scale = jnp.where(jnp.isfinite(diagonal), diagonal, 1.0)
+    offset = jnp.maximum(4.0 * scene.offset_scale, 1e-4 * scale)
+    trace = functools.partial(_trace, scene, plan)
     bg = shading.background
 
     def surface_color(rays, hits):
         p = rays.at(jnp.where(hits.hit, hits.t, 0.0))
-        n = _facing(hits.normal, rays.direction)
+        n = facing(hits.normal, rays.direction)
         if light.point:
             to_light = light.vector - p
             dist = jnp.linalg.norm(to_light, axis=-1)
@@ -225,15 +222,12 @@ def shade_rays(scene, rays: Rays, shading: Shading, light: Light, packet: int,
         ndotl = jnp.sum(n * ldir, axis=-1)
         lit = jnp.ones_like(ndotl)
         if shading.shadows:
-            shadow_opts = dict(options)
-            shadow_opts["eps"] = eps * shading.shadow_eps_scale
             cast = hits.hit & (ndotl > 0)
             # start outside the shadow ray's own (coarser) first piece: an interval box
             # of that piece must not reach back to the surface (shadow acne)
             srays = Rays(p + n * (offset * shading.shadow_eps_scale), ldir)
-            shits = intersect(scene, srays, t_min=0.0,
-                              t_max=jnp.where(cast, dist, -1.0), packet=packet,
-                              **shadow_opts)
+            shits = _trace(scene.coarser(shading.shadow_eps_scale), plan, srays,
+                           0.0, jnp.where(cast, dist, -1.0))
             lit = jnp.where(shits.hit, 0.0, 1.0)
         n_col = shading.colors.shape[0]
         base = shading.colors[jnp.mod(jnp.maximum(hits.surface, 0), n_col)]
@@ -274,7 +268,7 @@ def _with_reflections(trace, rays, hits, surface_color, shading, offset):
     carry = jnp.where(hits.hit, k, 0.0)
     cur_rays, cur_hits = rays, hits
     for bounce in range(shading.reflections):
-        n = _facing(cur_hits.normal, cur_rays.direction)
+        n = facing(cur_hits.normal, cur_rays.direction)
         d = cur_rays.direction
         refl = d - 2.0 * jnp.sum(d * n, axis=-1, keepdims=True) * n
         p = cur_rays.at(jnp.where(cur_hits.hit, cur_hits.t, 0.0)) + n * offset
@@ -288,9 +282,3 @@ def _with_reflections(trace, rays, hits, surface_color, shading, offset):
         carry = carry * jnp.where(nxt_hits.hit, k, 0.0)
         cur_rays, cur_hits = nxt, nxt_hits
     return total
-
-
-def _facing(normal, direction):
-    """Normals flipped to face the incoming ray (two-sided shading)."""
-    s = jnp.sum(normal * direction, axis=-1, keepdims=True)
-    return jnp.where(s > 0, -normal, normal)

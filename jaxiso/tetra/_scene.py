@@ -16,7 +16,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..render._scene import Hits, slab
+from .._core import (
+    Hits,
+    Plan,
+    SceneFields,
+    check_choice,
+    check_finite,
+    concrete,
+    pytree_dataclass,
+    slab,
+    static_field,
+    unit_or_facing,
+)
 from ._bvh import BVH, build_bvh, refit_jax
 from ._isopoly import tet_gradient
 from ._mesh import TetMesh
@@ -27,8 +38,8 @@ __all__ = ["TetIsosurface"]
 NORMALS = ("flat", "smooth")
 
 
-@dataclasses.dataclass(frozen=True)
-class TetIsosurface:
+@pytree_dataclass
+class TetIsosurface(SceneFields):
     """The level sets ``F = iso`` of the linear interpolant of vertex values on tets.
 
     Attributes:
@@ -39,6 +50,10 @@ class TetIsosurface:
       clip_lo, clip_hi: [3] world-space clip box (default: none, +-inf).
       vertex_gradients: [V, 3] area-weighted field gradients for smooth normals, or None.
       normals: "flat" (the tet's gradient) or "smooth" (vertex gradients interpolated).
+      max_steps: iteration bound per ray (None: the traversal's default).
+
+    All but normals and max_steps (static) are traced: `replace`, `with_isovalues`,
+    `with_time_step` and `with_points` never recompile for the same shapes.
     """
 
     mesh: TetMesh
@@ -48,20 +63,19 @@ class TetIsosurface:
     clip_lo: jax.Array
     clip_hi: jax.Array
     vertex_gradients: jax.Array | None
-    normals: str = "flat"
+    normals: str = static_field("flat")
+    max_steps: int | None = static_field(None)
 
-    def prefers_lanes(self, method) -> bool:
-        """render: persistent lanes for large images. With leaf tests postponed until half
-        the lanes wait at a leaf, lanes beat the best tiles (replicated spheres, 256^2:
-        0.27 vs 0.32 s for 10k tets, 0.27-0.34 vs 1.10 s for 664k; benchmarks/NOTES.md)."""
-        return True
-
-    # render's tile below 2^16 rays: 16x16 was fastest with postponed leaf tests (same
-    # scenes at 128^2: 4x4 0.21 / 1.61 s, 8x8 0.10 / 0.89 s, 16x16 0.11 / 0.32 s)
-    preferred_tile = 16
+    def preferred_plan(self, n_rays: int, backend: str) -> Plan:
+        """16x16 packets below 2^16 rays (fastest with postponed leaf tests; replicated
+        spheres at 128^2: 4x4 0.21 / 1.61 s, 8x8 0.10 / 0.89 s, 16x16 0.11 / 0.32 s), and
+        on the CPU 4096 persistent lanes from 2^16 rays (256^2: 0.27 vs 0.32 s for 10k
+        tets, 0.27-0.34 vs 1.10 s for 664k; benchmarks/NOTES.md)."""
+        lanes = 4096 if backend == "cpu" and n_rays >= 2**16 else None
+        return Plan(tile=16, lanes=lanes)
 
     def __init__(self, mesh, isovalues, *, bvh="bih", leaf_size=8, clip_box=None,
-                 time_step=0, normals="flat"):
+                 time_step=0, normals="flat", max_steps=None):
         if not isinstance(mesh, TetMesh):
             raise TypeError(f"mesh must be a TetMesh (tet_mesh(points, tets, values), "
                             f"from_meshio, from_pyvista), got {type(mesh).__name__}")
@@ -88,12 +102,36 @@ class TetIsosurface:
         values = {"mesh": mesh, "bvh": bvh, "isovalues": iso,
                   "time_step": jnp.int32(step), "clip_lo": jnp.asarray(lo, jnp.float32),
                   "clip_hi": jnp.asarray(hi, jnp.float32), "vertex_gradients": None,
-                  "normals": normals}
+                  "normals": normals, "max_steps": max_steps}
         for name, value in values.items():
             object.__setattr__(self, name, value)
         if normals == "smooth":
             object.__setattr__(self, "vertex_gradients", _vertex_gradients(
                 mesh.points, mesh.tets, jnp.asarray(mesh.values)[step]))
+        self._validate()
+
+    def _validate(self):
+        """Normalise and check the fields (construction and every `replace`)."""
+        check_choice("normals", self.normals, NORMALS)
+        if self.normals == "smooth" and self.vertex_gradients is None:
+            raise ValueError("smooth normals need vertex gradients: build the scene with "
+                             "TetIsosurface(mesh, ..., normals='smooth')")
+        iso = jnp.atleast_1d(jnp.asarray(self.isovalues, jnp.float32))
+        if iso.ndim != 1 or iso.size == 0:
+            raise ValueError(f"isovalues must be a scalar or a 1-D list, got shape {iso.shape}")
+        check_finite("isovalues", iso)
+        object.__setattr__(self, "isovalues", iso)
+        lo, hi = (jnp.asarray(getattr(self, n), jnp.float32) for n in ("clip_lo", "clip_hi"))
+        lo_, hi_ = concrete(lo), concrete(hi)
+        if lo_ is not None and hi_ is not None and (np.any(np.isnan(lo_)) or np.any(
+                np.isnan(hi_)) or np.any(lo_ > hi_)):
+            raise ValueError(f"clip box needs lo <= hi without NaN, got {lo_} and {hi_}")
+        object.__setattr__(self, "clip_lo", lo)
+        object.__setattr__(self, "clip_hi", hi)
+        m = self.max_steps
+        if m is not None and (isinstance(m, bool) or not isinstance(m, (int, np.integer))
+                              or m < 1):
+            raise ValueError(f"max_steps must be None or an int >= 1, got {m!r}")
 
     # -- the renderer reads these
     @property
@@ -106,13 +144,15 @@ class TetIsosurface:
         return jnp.minimum(self.bvh.hi[0, :3], self.clip_hi)
 
     @property
-    def eps(self):
-        """Offset scale for secondary rays: 1e-5 of the scene's diagonal."""
+    def offset_scale(self):
+        """Secondary rays leave a surface by 1e-5 of the scene's diagonal."""
         return 1e-5 * jnp.linalg.norm(self.hi - self.lo)
 
+    def coarser(self, factor) -> TetIsosurface:
+        """Hits are exact: shadow rays use the same scene."""
+        return self
+
     # -- changes without a rebuild (all jit-able)
-    def with_isovalues(self, isovalues) -> TetIsosurface:
-        return _replace(self, isovalues=jnp.atleast_1d(jnp.asarray(isovalues, jnp.float32)))
 
     def with_time_step(self, step) -> TetIsosurface:
         """Another time step: the BVH's value bounds are refit (Schema II), the tree kept."""
@@ -120,7 +160,7 @@ class TetIsosurface:
         values = jnp.asarray(self.mesh.values)[step]
         bvh = refit_jax(self.bvh, jnp.asarray(self.mesh.points), values,
                         jnp.asarray(self.mesh.tets))
-        return _replace(self, bvh=bvh, time_step=step,
+        return self.replace(bvh=bvh, time_step=step,
                         vertex_gradients=self._gradients(self.mesh.points, values))
 
     def with_points(self, points) -> TetIsosurface:
@@ -130,7 +170,7 @@ class TetIsosurface:
         values = jnp.asarray(self.mesh.values)[self.time_step]
         bvh = refit_jax(self.bvh, points, values, jnp.asarray(self.mesh.tets))
         mesh = dataclasses.replace(self.mesh, points=points)
-        return _replace(self, mesh=mesh, bvh=bvh,
+        return self.replace(mesh=mesh, bvh=bvh,
                         vertex_gradients=self._gradients(points, values))
 
     def _gradients(self, points, values):
@@ -138,17 +178,10 @@ class TetIsosurface:
             return None
         return _vertex_gradients(points, self.mesh.tets, values)
 
-    def intersect_packet(self, rays, t_min, t_max, *, normals=None, max_steps=None,
-                         eps=None, lanes=None) -> Hits:
-        """First hits of one packet of rays [P] (see `jaxiso.intersect`). `eps` (the
-        renderer's precision knob for shadow rays) has no effect: hits are exact.
-        lanes: run the packet on this many persistent lanes with refill (for a packet of
-        a whole image; same hits)."""
-        normals = self.normals if normals is None else normals
-        if normals not in NORMALS:
-            raise ValueError(f"normals must be one of {NORMALS}, got {normals!r}")
-        if normals == "smooth" and self.vertex_gradients is None:
-            raise ValueError("smooth normals need TetIsosurface(..., normals='smooth')")
+    def intersect_packet(self, rays, t_min, t_max, *, lanes: int | None = None) -> Hits:
+        """First hits of one packet of rays [P] (the scene protocol, `jaxiso.Scene`).
+        lanes: run the packet on this many persistent lanes with refill (same hits)."""
+        normals = self.normals
         o, d = rays.origin, rays.direction
         points = jnp.asarray(self.mesh.points)
         tets = jnp.asarray(self.mesh.tets)
@@ -159,7 +192,7 @@ class TetIsosurface:
         stop = jax.lax.stop_gradient
         t_raw, hit, which, tet, nodes, leaves = traverse(
             stop(self.bvh), stop(points), tets, stop(values), stop(self.isovalues),
-            stop(o), stop(d), stop(t_lo), stop(t_hi), max_steps=max_steps, lanes=lanes)
+            stop(o), stop(d), stop(t_lo), stop(t_hi), max_steps=self.max_steps, lanes=lanes)
         # closed-form t on the hit tet: differentiable, and equal to the loop's value
         ids = tets[jnp.maximum(tet, 0)]
         p, f = points[ids], values[ids]
@@ -174,10 +207,7 @@ class TetIsosurface:
             n = _interpolate(p, self.vertex_gradients[ids], x)
         else:
             n = grad
-        norm = jnp.linalg.norm(n, axis=-1, keepdims=True)
-        ok = (norm > 0) & jnp.isfinite(norm)
-        facing = -d / jnp.linalg.norm(d, axis=-1, keepdims=True)
-        normal = jnp.where(ok, n / jnp.where(ok, norm, 1.0), facing)
+        normal = unit_or_facing(n, d)
         return Hits(t=t, hit=hit, normal=jnp.where(hit[:, None], normal, 0.0),
                     surface=jnp.where(hit, which, -1), steps=nodes)
 
@@ -211,28 +241,3 @@ def _vertex_gradients(points, tets, values):
     sums = jax.ops.segment_sum(weighted, tets.reshape(-1), points.shape[0])
     total = jax.ops.segment_sum(jnp.repeat(vol, 4), tets.reshape(-1), points.shape[0])
     return sums / jnp.maximum(total, 1e-30)[:, None]
-
-
-def _replace(scene, **changes):
-    new = object.__new__(TetIsosurface)
-    for f in dataclasses.fields(TetIsosurface):
-        object.__setattr__(new, f.name, changes.get(f.name, getattr(scene, f.name)))
-    return new
-
-
-_DATA = ("mesh", "bvh", "isovalues", "time_step", "clip_lo", "clip_hi", "vertex_gradients")
-
-
-def _flatten(s):
-    return tuple(getattr(s, n) for n in _DATA), (s.normals,)
-
-
-def _unflatten(aux, children):
-    s = object.__new__(TetIsosurface)
-    for name, v in zip(_DATA, children):
-        object.__setattr__(s, name, v)
-    object.__setattr__(s, "normals", aux[0])
-    return s
-
-
-jax.tree_util.register_pytree_node(TetIsosurface, _flatten, _unflatten)

@@ -8,14 +8,23 @@ rays and the float voxel values through the implicit function theorem (`attach_t
 
 from __future__ import annotations
 
-import dataclasses
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..implicit._scene import attach_t
-from ..render._scene import Hits, slab
+from .._core import (
+    Hits,
+    Plan,
+    SceneFields,
+    attach_t,
+    check_choice,
+    check_finite,
+    concrete,
+    pytree_dataclass,
+    slab,
+    static_field,
+    unit_or_facing,
+)
 from . import _cell, _octree
 from ._hierarchy import GridCells, MacrocellGrid, OctreeCells
 from ._traverse import traverse, voxel_ray
@@ -27,8 +36,8 @@ TRAVERSALS = ("restart", "neighbor")
 NORMALS = ("trilinear", "central")
 
 
-@dataclasses.dataclass(frozen=True)
-class VolumeIsosurface:
+@pytree_dataclass
+class VolumeIsosurface(SceneFields):
     """The level sets ``F = iso`` of the trilinear interpolant F of a volume's voxels.
 
     Attributes:
@@ -45,6 +54,11 @@ class VolumeIsosurface:
       lod: None (full resolution) or a `LevelOfDetail` (`lod_for(camera, quality)`):
         stop at coarse cells where a pixel covers several voxels (octree only, ch. 4).
         Shadow rays from `render` run at `shadow_eps_scale` times its dP/dV ratio.
+      max_steps: iteration bound per ray (None: enough for any ray through the volume).
+
+    volume, isovalues, clip box and lod are traced (`replace` / `with_isovalues` /
+    `with_lod` never recompile for the same shapes); method, traversal, normals and
+    max_steps are static.
 
     Non-finite voxels mark missing data: cells touching one are never hit.
     """
@@ -53,45 +67,50 @@ class VolumeIsosurface:
     isovalues: jax.Array
     clip_lo: jax.Array
     clip_hi: jax.Array
-    method: str = "neubauer"
-    traversal: str = "restart"
-    normals: str = "trilinear"
+    method: str = static_field("neubauer")
+    traversal: str = static_field("restart")
+    normals: str = static_field("trilinear")
     lod: object = None
-
-    def prefers_lanes(self, method) -> bool:
-        """render: persistent lanes for large images (measured in benchmarks/NOTES.md)."""
-        return True
-    # render's default tile: 8x8 was fastest in the packet table of bench_volume.py
-    # (256^3 mixing layer, 256^2: 2x2 0.005, 4x4 0.008, 8x8 0.014, 16x16 0.012 Mrays/s)
-    preferred_tile = 8
+    max_steps: int | None = static_field(None)
 
     def __init__(self, volume, isovalues, *, clip_box=None, method="neubauer",
-                 traversal="restart", normals="trilinear", lod=None):
+                 traversal="restart", normals="trilinear", lod=None, max_steps=None):
         if not isinstance(volume, (_octree.OctreeVolume, MacrocellGrid)):
             raise TypeError("volume must be an OctreeVolume or a MacrocellGrid, got "
                             f"{type(volume).__name__}; build one with "
                             "OctreeVolume.from_array(data)")
-        _check_choice("method", method, METHODS)
-        _check_choice("traversal", traversal, TRAVERSALS)
-        _check_choice("normals", normals, NORMALS)
-        if lod is not None and not isinstance(volume, _octree.OctreeVolume):
-            raise ValueError("level of detail needs an OctreeVolume")
-        if lod is not None and not volume.multires:
-            raise ValueError("level of detail needs a volume built with multires=True")
-        iso = jnp.atleast_1d(jnp.asarray(isovalues, jnp.float32))
-        if iso.ndim != 1 or iso.size == 0:
-            raise ValueError(f"isovalues must be a scalar or a 1-D list, got shape {iso.shape}")
-        _check_finite("isovalues", iso)
         lo, hi = _cells_box(volume)
         if clip_box is not None:
             c_lo, c_hi = (jnp.broadcast_to(jnp.asarray(c, jnp.float32), (3,))
                           for c in clip_box)
+            check_finite("clip_box", jnp.stack([c_lo, c_hi]))
             _check_box(c_lo, c_hi)
             lo, hi = jnp.maximum(lo, c_lo), jnp.minimum(hi, c_hi)
-        for name, value in (("volume", volume), ("isovalues", iso), ("clip_lo", lo),
+        for name, value in (("volume", volume), ("isovalues", isovalues), ("clip_lo", lo),
                             ("clip_hi", hi), ("method", method), ("traversal", traversal),
-                            ("normals", normals), ("lod", lod)):
+                            ("normals", normals), ("lod", lod), ("max_steps", max_steps)):
             object.__setattr__(self, name, value)
+        self._validate()
+
+    def _validate(self):
+        """Normalise and check the fields (construction and every `replace`)."""
+        check_choice("method", self.method, METHODS)
+        check_choice("traversal", self.traversal, TRAVERSALS)
+        check_choice("normals", self.normals, NORMALS)
+        volume, lod = self.volume, self.lod
+        if lod is not None and not isinstance(volume, _octree.OctreeVolume):
+            raise ValueError("level of detail needs an OctreeVolume")
+        if lod is not None and not volume.multires:
+            raise ValueError("level of detail needs a volume built with multires=True")
+        iso = jnp.atleast_1d(jnp.asarray(self.isovalues, jnp.float32))
+        if iso.ndim != 1 or iso.size == 0:
+            raise ValueError(f"isovalues must be a scalar or a 1-D list, got shape {iso.shape}")
+        check_finite("isovalues", iso)
+        object.__setattr__(self, "isovalues", iso)
+        for name in ("clip_lo", "clip_hi"):
+            object.__setattr__(self, name, jnp.asarray(getattr(self, name), jnp.float32))
+            check_finite(name, getattr(self, name))
+        _check_max_steps(self.max_steps)
 
     @property
     def lo(self):
@@ -102,41 +121,33 @@ class VolumeIsosurface:
         return self.clip_hi
 
     @property
-    def eps(self):
-        """Offset scale for secondary rays: a thousandth of a voxel."""
+    def offset_scale(self):
+        """Secondary rays leave a surface by a thousandth of a voxel."""
         return 1e-3 * jnp.min(self.volume.spacing)
 
-    def with_isovalues(self, isovalues) -> VolumeIsosurface:
-        """The same volume at other isovalues (same count: no retrace, no rebuild)."""
-        iso = jnp.atleast_1d(jnp.asarray(isovalues, jnp.float32))
-        _check_finite("isovalues", iso)
-        return _replace(self, isovalues=iso)
+    def coarser(self, factor) -> VolumeIsosurface:
+        """Shadow rays: the level of detail `factor` times coarser (no effect without)."""
+        if self.lod is None:
+            return self
+        return self.replace(lod=self.lod.coarser(jnp.maximum(factor, 1.0)))
+
+    def preferred_plan(self, n_rays: int, backend: str) -> Plan:
+        """8x8 packets (fastest in the packet table of bench_volume.py, 256^3 mixing layer
+        at 256^2: 2x2 0.005, 4x4 0.008, 8x8 0.014, 16x16 0.012 Mrays/s); on the CPU,
+        4096 persistent lanes from 2^16 rays (benchmarks/NOTES.md)."""
+        lanes = 4096 if backend == "cpu" and n_rays >= 2**16 else None
+        return Plan(tile=8, lanes=lanes)
 
     def with_lod(self, lod) -> VolumeIsosurface:
         """The same scene with another level-of-detail model (None: full resolution)."""
-        if lod is not None and not getattr(self.volume, "multires", False):
-            raise ValueError("level of detail needs an OctreeVolume built with multires=True")
-        return _replace(self, lod=lod)
+        return self.replace(lod=lod)
 
-    def intersect_packet(self, rays, t_min, t_max, *, method=None, traversal=None,
-                         normals=None, max_steps=None, eps=None, lanes=None) -> Hits:
-        """First hits of one packet of rays [P] (see `jaxiso.intersect`).
-
-        Options: method, traversal, normals (defaults from the scene); max_steps:
-        iteration bound. `eps` is the renderer's precision knob: shadow rays come with a
-        coarser eps, which scales the level-of-detail ratio (no effect without `lod`).
-        lanes: run the packet on this many persistent lanes with refill (for a packet of
-        a whole image; same hits)."""
-        method = self.method if method is None else method
-        traversal = self.traversal if traversal is None else traversal
-        normals = self.normals if normals is None else normals
-        _check_choice("method", method, METHODS)
-        _check_choice("traversal", traversal, TRAVERSALS)
-        _check_choice("normals", normals, NORMALS)
+    def intersect_packet(self, rays, t_min, t_max, *, lanes: int | None = None) -> Hits:
+        """First hits of one packet of rays [P] (the scene protocol, `jaxiso.Scene`).
+        lanes: run the packet on this many persistent lanes with refill (same hits)."""
+        method, traversal, normals = self.method, self.traversal, self.normals
         vol = self.volume
         lod = self.lod
-        if lod is not None and eps is not None:
-            lod = lod.coarser(jnp.maximum(eps / self.eps, 1.0))
         o, d = rays.origin, rays.direction
         q0, dq = voxel_ray(vol.origin, vol.spacing, o, d)
         box_lo = (self.clip_lo - vol.origin) / vol.spacing
@@ -150,7 +161,7 @@ class VolumeIsosurface:
             cells = OctreeCells(vol, self.isovalues, traversal == "neighbor", lod)
         t_raw, hit, which, cell, size, steps = traverse(
             cells, self.isovalues, q0, dq, t_start, t_end, method=method,
-            max_steps=max_steps, lanes=lanes)
+            max_steps=self.max_steps, lanes=lanes)
         safe_t = jnp.where(hit, t_raw, 0.0)
         if lod is None:
             level = self.isovalues[jnp.maximum(which, 0)]
@@ -162,17 +173,10 @@ class VolumeIsosurface:
             grad = _central_gradient(vol, cell, u)
         else:
             grad = _cell.trilinear_gradient(corners, u) / size[:, None]
-        normal = _unit_or_facing(grad / vol.spacing, d)
+        normal = unit_or_facing(grad / vol.spacing, d)
         return Hits(t=jnp.where(hit, safe_t, jnp.inf), hit=hit,
                     normal=jnp.where(hit[:, None], normal, 0.0),
                     surface=jnp.where(hit, which, -1), steps=steps)
-
-
-def _replace(scene, **changes):
-    new = object.__new__(VolumeIsosurface)
-    for f in dataclasses.fields(VolumeIsosurface):
-        object.__setattr__(new, f.name, changes.get(f.name, getattr(scene, f.name)))
-    return new
 
 
 def _log2(size):
@@ -232,13 +236,6 @@ def _central_gradient(vol, cell, u):
     return jnp.stack([_cell.trilinear(corner_grads[..., i], u) for i in range(3)], axis=-1)
 
 
-def _unit_or_facing(grad, d):
-    norm = jnp.linalg.norm(grad, axis=-1, keepdims=True)
-    ok = (norm > 0) & jnp.isfinite(norm)
-    facing = -d / jnp.linalg.norm(d, axis=-1, keepdims=True)
-    return jnp.where(ok, grad / jnp.where(ok, norm, 1.0), facing)
-
-
 def _cells_box(volume):
     n = jnp.array(volume.shape, jnp.float32)
     lo = volume.origin
@@ -246,41 +243,15 @@ def _cells_box(volume):
     return lo.astype(jnp.float32), hi.astype(jnp.float32)
 
 
-def _check_choice(name, value, choices):
-    if value not in choices:
-        raise ValueError(f"{name} must be one of {choices}, got {value!r}")
-
-
-def _check_finite(name, x):
-    try:
-        arr = np.asarray(x)
-    except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError):
-        return
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be finite, got {arr}")
-
-
 def _check_box(lo, hi):
-    try:
-        lo_, hi_ = np.asarray(lo), np.asarray(hi)
-    except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError):
+    lo_, hi_ = concrete(lo), concrete(hi)
+    if lo_ is None or hi_ is None:
         return
     if np.any(lo_ > hi_):
         raise ValueError(f"clip box needs lo <= hi, got {lo_} and {hi_}")
 
 
-def _flatten(s: VolumeIsosurface):
-    return ((s.volume, s.isovalues, s.clip_lo, s.clip_hi, s.lod),
-            (s.method, s.traversal, s.normals))
-
-
-def _unflatten(aux, children):
-    s = object.__new__(VolumeIsosurface)
-    for name, v in zip(("volume", "isovalues", "clip_lo", "clip_hi", "lod"), children):
-        object.__setattr__(s, name, v)
-    for name, v in zip(("method", "traversal", "normals"), aux):
-        object.__setattr__(s, name, v)
-    return s
-
-
-jax.tree_util.register_pytree_node(VolumeIsosurface, _flatten, _unflatten)
+def _check_max_steps(max_steps):
+    if max_steps is not None and (isinstance(max_steps, bool) or not isinstance(
+            max_steps, (int, np.integer)) or max_steps < 1):
+        raise ValueError(f"max_steps must be None or an int >= 1, got {max_steps!r}")

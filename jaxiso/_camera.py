@@ -12,33 +12,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._core import Rays
+
 __all__ = ["Rays", "Camera"]
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class Rays:
-    """A batch of rays ``p(t) = origin + t * direction``.
-
-    Attributes:
-      origin: [..., 3] float.
-      direction: [..., 3] float, nonzero (need not be unit length; `t` is in its units).
-    """
-
-    origin: jax.Array
-    direction: jax.Array
-
-    @property
-    def shape(self) -> tuple:
-        return tuple(jnp.shape(self.origin)[:-1])
-
-    def reshape(self, shape) -> Rays:
-        shape = tuple(shape)
-        return Rays(self.origin.reshape(shape + (3,)), self.direction.reshape(shape + (3,)))
-
-    def at(self, t) -> jax.Array:
-        """Points [..., 3] at parameters t [...]."""
-        return self.origin + jnp.asarray(t)[..., None] * self.direction
 
 
 def _unit(v):
@@ -111,11 +87,17 @@ class Camera:
         return dataclasses.replace(self, **changes)
 
 
+def _pixels(name, n) -> int:
+    """An image size: a positive whole number (2.7 is an error, not 2)."""
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer, float, np.floating)) \
+            or not float(n).is_integer() or n < 1:
+        raise ValueError(f"{name} must be a positive whole number of pixels, got {n!r}")
+    return int(n)
+
+
 def _make(eye, target, up, scale, width, height, orthographic) -> Camera:
-    width = int(width)
-    height = width if height is None else int(height)
-    if width < 1 or height < 1:
-        raise ValueError(f"image size must be positive, got {width}x{height}")
+    width = _pixels("width", width)
+    height = width if height is None else _pixels("height", height)
     eye = jnp.asarray(eye, jnp.float32)
     target = jnp.asarray(target, jnp.float32)
     up = jnp.asarray(up, jnp.float32)

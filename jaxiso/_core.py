@@ -1,0 +1,299 @@
+"""The floor every layer stands on: rays, hits, the execution plan, the scene protocol,
+the one pytree mechanism, the ray-box clip, facing normals and the implicit-function-
+theorem attachment of hit parameters.
+
+Nothing here imports another jaxiso module; scenes (implicit, volume, tetra) import this
+and never `render`; `render` sees scenes only through `Scene`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import typing
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["Rays", "Hits", "Plan", "Scene", "SceneFields", "pytree_dataclass", "static_field",
+           "slab",
+           "facing", "unit_or_facing", "attach_t", "miss_like", "concrete", "check_finite",
+           "check_choice"]
+
+
+# -- the one pytree mechanism ---------------------------------------------------------
+
+def static_field(default=dataclasses.MISSING, **kwargs):
+    """A dataclass field that is pytree metadata (static under jit: a new value compiles
+    anew); every other field is a traced leaf."""
+    return dataclasses.field(default=default, metadata=dict(static=True), **kwargs)
+
+
+def pytree_dataclass(cls):
+    """A frozen dataclass registered as a pytree: fields made with `static_field` are
+    metadata, the others children. Unflattening bypasses ``__init__`` (JAX rebuilds nodes
+    with tracers and placeholders; validation belongs to user-facing construction)."""
+    cls = dataclasses.dataclass(frozen=True)(cls)
+    fields = dataclasses.fields(cls)
+    data = tuple(f.name for f in fields if not f.metadata.get("static"))
+    meta = tuple(f.name for f in fields if f.metadata.get("static"))
+
+    def flatten(x):
+        return (tuple(getattr(x, n) for n in data), tuple(getattr(x, n) for n in meta))
+
+    def flatten_with_keys(x):
+        return (tuple((jax.tree_util.GetAttrKey(n), getattr(x, n)) for n in data),
+                tuple(getattr(x, n) for n in meta))
+
+    def unflatten(aux, children):
+        obj = object.__new__(cls)
+        for n, v in zip(data, children):
+            object.__setattr__(obj, n, v)
+        for n, v in zip(meta, aux):
+            object.__setattr__(obj, n, v)
+        return obj
+
+    jax.tree_util.register_pytree_with_keys(cls, flatten_with_keys, unflatten, flatten)
+    return cls
+
+
+class SceneFields:
+    """`replace` and `with_isovalues` for scene dataclasses: every change is validated by
+    the scene's ``_validate`` (the same checks as construction), whatever the kind."""
+
+    def replace(self, **changes):
+        """The same scene with other field values; traced fields (eps, isovalues, w,
+        clip box, ...) never recompile, static ones (method, normals, ...) do."""
+        names = [f.name for f in dataclasses.fields(self)]
+        unknown = sorted(set(changes) - set(names))
+        if unknown:
+            raise TypeError(f"{type(self).__name__} has no field(s) {unknown}; its fields: "
+                            f"{names}")
+        new = object.__new__(type(self))
+        for n in names:
+            object.__setattr__(new, n, changes.get(n, getattr(self, n)))
+        new._validate()
+        return new
+
+    def with_isovalues(self, isovalues):
+        """The same scene at other isovalues (same count: no recompile)."""
+        return self.replace(isovalues=isovalues)
+
+    def _validate(self) -> None:
+        raise NotImplementedError
+
+
+# -- validation helpers (shared by every scene) ---------------------------------------
+
+def concrete(x):
+    """x as a numpy array, or None when it is traced or not numeric (checks of traced values
+    happen where they were concrete)."""
+    try:
+        a = np.asarray(x)
+    except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError,
+            TypeError):
+        return None
+    return a if a.dtype != object else None
+
+
+def check_finite(name: str, x) -> None:
+    """ValueError naming `name` if a concrete x holds NaN or inf."""
+    a = concrete(x)
+    if a is not None and not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} must be finite, got {a}")
+
+
+def check_choice(name: str, value, choices) -> None:
+    """ValueError listing the valid choices."""
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {tuple(choices)}, got {value!r}")
+
+
+# -- rays and hits ----------------------------------------------------------------------
+
+@pytree_dataclass
+class Rays:
+    """A batch of rays ``p(t) = origin + t * direction``.
+
+    Attributes:
+      origin: [..., 3] float.
+      direction: [..., 3] float, nonzero (need not be unit length; `t` is in its units).
+    """
+
+    origin: jax.Array
+    direction: jax.Array
+
+    @property
+    def shape(self) -> tuple:
+        return tuple(jnp.shape(self.origin)[:-1])
+
+    def reshape(self, shape) -> Rays:
+        shape = tuple(shape)
+        return Rays(self.origin.reshape(shape + (3,)), self.direction.reshape(shape + (3,)))
+
+    def at(self, t) -> jax.Array:
+        """Points [..., 3] at parameters t [...]."""
+        return self.origin + jnp.asarray(t)[..., None] * self.direction
+
+
+@pytree_dataclass
+class Hits:
+    """First hits of a batch of rays (all arrays share the batch shape S).
+
+    Attributes:
+      t: [S] ray parameter of the hit, inf where none.
+      hit: [S] bool.
+      normal: [S, 3] unit normal (world space; (0, 0, 0) on a miss).
+      surface: [S] int32, which isovalue or CSG part was hit (-1 on a miss).
+      steps: [S] int32, loop iterations spent (a work counter for benchmarks).
+    """
+
+    t: jax.Array
+    hit: jax.Array
+    normal: jax.Array
+    surface: jax.Array
+    steps: jax.Array
+
+    def reshape(self, shape) -> Hits:
+        shape = tuple(shape)
+        return Hits(self.t.reshape(shape), self.hit.reshape(shape),
+                    self.normal.reshape(shape + (3,)), self.surface.reshape(shape),
+                    self.steps.reshape(shape))
+
+
+def miss_like(t) -> Hits:
+    """Hits with no hit, shaped like t."""
+    shape = jnp.shape(t)
+    return Hits(jnp.full(shape, jnp.inf, jnp.float32), jnp.zeros(shape, bool),
+                jnp.zeros(shape + (3,), jnp.float32), jnp.full(shape, -1, jnp.int32),
+                jnp.zeros(shape, jnp.int32))
+
+
+# -- the execution plan and the scene protocol ---------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+    """How a batch of rays runs (static: a new plan compiles anew).
+
+    Attributes:
+      tile: packet edge in pixels: `render` orders camera rays in tiles of tile x tile
+        pixels, and rays run in packets of tile**2 consecutive rays (a batched
+        ``while_loop`` runs until its slowest ray is done, so coherent packets waste least).
+      lanes: None (packets), or the width of persistent lanes with refill that run the
+        whole batch as one queue (faster per frame for large images, slower to compile).
+    """
+
+    tile: int = 8
+    lanes: int | None = None
+
+    def __post_init__(self):
+        if isinstance(self.tile, bool) or not isinstance(self.tile, (int, np.integer)) \
+                or self.tile < 1:
+            raise ValueError(f"Plan.tile must be a positive int, got {self.tile!r}")
+        if self.lanes is not None and (isinstance(self.lanes, bool) or not isinstance(
+                self.lanes, (int, np.integer)) or self.lanes < 1):
+            raise ValueError(f"Plan.lanes must be None or a positive int, got {self.lanes!r}")
+        object.__setattr__(self, "tile", int(self.tile))
+        if self.lanes is not None:
+            object.__setattr__(self, "lanes", int(self.lanes))
+
+    @property
+    def packet(self) -> int:
+        return self.tile * self.tile
+
+
+@typing.runtime_checkable
+class Scene(typing.Protocol):
+    """What `intersect` and `render` need of a scene (ImplicitSurface, CSG,
+    VolumeIsosurface, TetIsosurface implement it; tests check each).
+
+    Scenes are pytrees: static choices (method, arithmetic, normals, ...) are metadata,
+    numeric knobs (eps, isovalues, w, clip box, level of detail) traced leaves, so changing
+    a knob with `replace` never recompiles. Every option lives on the scene.
+    """
+
+    @property
+    def lo(self) -> jax.Array:
+        """[3] min corner of the drawn region's bounding box."""
+
+    @property
+    def hi(self) -> jax.Array:
+        """[3] max corner."""
+
+    @property
+    def offset_scale(self) -> jax.Array:
+        """[] world length by which secondary rays (shadows, layers, reflections) leave
+        a surface (the ray precision for implicits; a fraction of a cell otherwise)."""
+
+    def replace(self, **changes) -> Scene:
+        """The same scene with other option values, validated as at construction."""
+
+    def coarser(self, factor) -> Scene:
+        """The scene for rays that may be `factor` (>= 1) times coarser (shadow rays,
+        seed Sec. 6.4.6): a larger eps, a coarser level of detail, or itself."""
+
+    def preferred_plan(self, n_rays: int, backend: str) -> Plan:
+        """The fastest measured plan for a batch of n_rays on this backend."""
+
+    def intersect_packet(self, rays: Rays, t_min, t_max, *, lanes: int | None = None
+                         ) -> Hits:
+        """First hits of one packet of rays [P] with t in [t_min, t_max] ([P] each).
+        lanes: run the packet on that many persistent lanes with refill (same hits)."""
+
+
+# -- geometry shared by the scenes ----------------------------------------------------
+
+def slab(q0, dq, lo, hi):
+    """Entry and exit t [P] of rays q0 + t dq [P, 3] through the boxes [lo, hi] (closed);
+    an axis-parallel ray is inside that axis's slab for all t or for none."""
+    safe = jnp.where(dq == 0, 1.0, dq)
+    ta = (lo - q0) / safe
+    tb = (hi - q0) / safe
+    inside = (q0 >= lo) & (q0 <= hi)
+    near = jnp.where(dq == 0, jnp.where(inside, -jnp.inf, jnp.inf), jnp.minimum(ta, tb))
+    far = jnp.where(dq == 0, jnp.where(inside, jnp.inf, -jnp.inf), jnp.maximum(ta, tb))
+    return jnp.max(near, axis=-1), jnp.min(far, axis=-1)
+
+
+def facing(normal, direction):
+    """Normals [..., 3] flipped to face the incoming rays (two-sided shading)."""
+    s = jnp.sum(normal * direction, axis=-1, keepdims=True)
+    return jnp.where(s > 0, -normal, normal)
+
+
+def unit_or_facing(grad, direction):
+    """grad / |grad| [..., 3]; where the gradient vanishes or is not finite, a normal that
+    faces the ray (-direction / |direction|), never NaN."""
+    norm = jnp.linalg.norm(grad, axis=-1, keepdims=True)
+    ok = (norm > 0) & jnp.all(jnp.isfinite(grad), axis=-1, keepdims=True) & jnp.isfinite(norm)
+    back = -direction / jnp.linalg.norm(direction, axis=-1, keepdims=True)
+    return jnp.where(ok, grad / jnp.where(ok, norm, 1.0), back)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def attach_t(g: Callable, t, o, d, w, params, iso, hit):
+    """The hit parameter t [P] of rays o + t d on g(x, y, z, w, params) = iso, returned as
+    is; its derivative comes from the implicit function theorem:
+    dt = -(dg - diso) / (grad g . d), with dg the change of g at the fixed hit point."""
+    return t
+
+
+@attach_t.defjvp
+def _attach_t_jvp(g, primals, tangents):
+    t, o, d, w, params, iso, hit = primals
+    _, do, dd, dw, dparams, diso, _ = tangents
+
+    def at(q, w, params):
+        return g(q[0], q[1], q[2], w, params)
+
+    q = o + t[:, None] * d
+    dq = do + t[:, None] * dd
+    batched = jax.vmap(at, in_axes=(0, None, None))
+    _, dg = jax.jvp(batched, (q, w, params), (dq, dw, dparams))
+    grad = jax.vmap(jax.grad(at), in_axes=(0, None, None))(q, w, params)
+    denom = jnp.sum(grad * d, axis=-1)
+    ok = hit & (jnp.abs(denom) > 1e-20) & jnp.isfinite(denom)
+    dt = jnp.where(ok, -(dg - diso) / jnp.where(ok, denom, 1.0), 0.0)
+    return t, dt
