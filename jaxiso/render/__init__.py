@@ -1,7 +1,7 @@
 """Render layer: cameras, the execution plan, `intersect`, shading and images."""
 
-from .._core import Hits, Plan, Rays, Scene
 from .._camera import Camera
+from .._core import Hits, Plan, Rays, Scene
 from ._image import Image, save_png
 from ._plan import from_tiles, intersect, plan_for, to_tiles
 from ._render import Light, Shading, render

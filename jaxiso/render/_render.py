@@ -17,8 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from .._core import Plan, Rays, concrete, facing
 from .._camera import Camera
+from .._core import Plan, Rays, concrete, facing
 from ._image import Image
 from ._plan import _check_scene, from_tiles, intersect_traced, plan_for, to_tiles
 
