@@ -194,7 +194,7 @@ def mitchell(g, scene, p, D, inside, eps, arithmetic="interval", rounding="fast"
              max_steps=None, *, refine_steps=None) -> _bisect.Result:
     """Mitchell's interval root isolation with point refinement (seed Sec. 6.6.4).
 
-    Stackless bisection over s (the integer-position scheme of `_bisect.t_bisect`). A
+    Stackless bisection over s (`_bisect.advance`, as in `_bisect.t_bisect`). A
     piece whose inclusion F excludes every isovalue is rejected. A possible piece is
     *isolated* when the inclusion of the directional derivative ``grad f . D`` on it
     excludes 0 (and is bounded): f is monotone there, so if f - iso changes sign between
@@ -220,17 +220,13 @@ def mitchell(g, scene, p, D, inside, eps, arithmetic="interval", rounding="fast"
     NONE, DEPTH, BRACKET = 0, 1, 2
 
     def one(p, D, d_max, length, active):
-        def piece(k, d):
-            w = _bisect.piece_width(d)
-            return k.astype(jnp.float32) * w, (k + 1).astype(jnp.float32) * w
-
         def cond(st):
             k, d, done, kind, steps, evals = st
             return ~done & (steps < max_steps)
 
         def body(st):
             k, d, done, kind, steps, evals = st
-            s0, s1 = piece(k, d)
+            s0, s1 = _bisect.piece(k, d)
             boxes = ray_boxes(p, D, s0, s1, arithmetic)
             r = enclosure(F, boxes, scene.w, scene.params, arithmetic)
             possible, finite = contains_any(r, iso)
@@ -250,13 +246,7 @@ def mitchell(g, scene, p, D, inside, eps, arithmetic="interval", rounding="fast"
             depth_hit = cand & ~isolated & (d >= d_max)
             stop = bracket | depth_hit
             descend = possible & ~isolated & ~depth_hit & (d < d_max)
-            # move on: k + 1, then pop the levels whose both halves are done
-            k_next = k + 1
-            pop = jnp.minimum(_bisect._trailing_zeros(k_next), d)
-            k_next, d_next = k_next >> pop, d - pop
-            k = jnp.where(stop, k, jnp.where(descend, 2 * k, k_next))
-            d = jnp.where(stop, d, jnp.where(descend, d + 1, d_next))
-            finished = stop | (~descend & (d_next == 0))
+            k, d, finished = _bisect.advance(k, d, stop, descend)
             kind = jnp.where(bracket, BRACKET, jnp.where(depth_hit, DEPTH, NONE))
             n_eval = 1 + (possible & (H is not None)).astype(jnp.int32)
             return k, d, done | finished, kind.astype(jnp.int32), steps + 1, evals + n_eval
@@ -265,7 +255,7 @@ def mitchell(g, scene, p, D, inside, eps, arithmetic="interval", rounding="fast"
                 jnp.int32(0))
         k, d, done, kind, steps, evals = lax.while_loop(cond, body, init)
         kind = jnp.where(done & active, kind, NONE)
-        s0, s1 = piece(k, d)
+        s0, s1 = _bisect.piece(k, d)
 
         # refine an isolated bracket on points
         va = _point_value(g, scene, p, D, s0)

@@ -16,13 +16,14 @@ of the dominant axis K in lockstep (Sec. 6.4.3): one shared (k, d) and per-ray m
 
 from __future__ import annotations
 
+import functools
 import typing
 
 import jax
 import jax.numpy as jnp
 from jax import lax
 
-from .._lanes import run_lanes
+from .._lanes import run_rays
 
 MAX_DEPTH = 30  # int32 positions stay exact
 
@@ -65,8 +66,62 @@ def _trailing_zeros(k):
     return lax.population_count((k & -k) - 1)
 
 
+def piece(k, d):
+    """(s0, s1) = (k 2^-d, (k + 1) 2^-d), the piece at integer position k of depth d."""
+    w = piece_width(d)
+    return k.astype(jnp.float32) * w, (k + 1).astype(jnp.float32) * w
+
+
+def advance(k, d, accept, descend):
+    """One move of the stackless walk over the pieces (k, d) of [0, 1] (Algorithm 7).
+
+    accept: stay on the piece (it holds the hit); else descend: go to its first half
+    (2k, d + 1); else move on to the next piece k + 1 and pop the levels whose both halves
+    are done, the trailing zero bits of k + 1 (the seed's float-modulus test).
+    Elementwise (scalars or arrays; accept may be a Python bool). Returns (k, d, finished):
+    finished when the piece was accepted or the walk moved past s = 1.
+    """
+    k_next = k + 1
+    pop = jnp.minimum(_trailing_zeros(k_next), d)
+    k_next, d_next = k_next >> pop, d - pop
+    k = jnp.where(accept, k, jnp.where(descend, 2 * k, k_next))
+    d = jnp.where(accept, d, jnp.where(descend, d + 1, d_next))
+    return k, d, accept | (~descend & (d_next == 0))
+
+
+# t-bisection: per-ray state (scalars or [P] leaves) for `jaxiso._lanes.run_rays`
+_T_RESULTS = ("k", "d", "hit", "steps")
+
+
+def _t_start(d_max, active):
+    d_max = jnp.asarray(d_max, jnp.int32)
+    active = jnp.asarray(active, bool)
+    zeros = jnp.zeros_like(d_max)
+    return dict(k=zeros, d=zeros, dmax=d_max, going=active, hit=jnp.zeros_like(active),
+                steps=zeros)
+
+
+def _t_step(test, st):
+    """One t-bisection step of every going ray (elementwise); rays not going come back
+    unchanged. An accepted ray stops on (k, d) of its hit piece."""
+    k, d, go = st["k"], st["d"], st["going"]
+    r = test(*piece(k, d))
+    accept = r.possible & r.finite & ((d >= st["dmax"]) | r.small)
+    descend = r.possible & ~accept & (d < st["dmax"])
+    k_new, d_new, finished = advance(k, d, accept, descend)
+    return dict(st, k=jnp.where(go, k_new, k), d=jnp.where(go, d_new, d),
+                going=go & ~finished, hit=st["hit"] | (go & accept),
+                steps=st["steps"] + go.astype(jnp.int32))
+
+
+def _t_result(out) -> Result:
+    s = (out["k"].astype(jnp.float32) + 0.5) * piece_width(out["d"])
+    return Result(jnp.where(out["hit"], s, jnp.inf), out["hit"], out["steps"])
+
+
 def t_bisect(test, d_max, active, max_steps: int) -> Result:
-    """Stackless bisection of one ray's segment (call under vmap for a packet).
+    """Stackless bisection of one ray's segment (call under vmap for a packet: one
+    batched loop, until the packet's slowest ray is done).
 
     Args:
       test: ``test(s0, s1) -> BoxTest`` for this ray.
@@ -74,34 +129,9 @@ def t_bisect(test, d_max, active, max_steps: int) -> Result:
       active: bool, False for rays that miss the domain.
       max_steps: static bound on loop iterations (a ray that runs out reports no hit).
     """
-
-    def cond(state):
-        k, d, done, hit, steps = state
-        return ~done & (steps < max_steps)
-
-    def body(state):
-        k, d, done, hit, steps = state
-        w = piece_width(d)
-        s0 = k.astype(jnp.float32) * w
-        s1 = (k + 1).astype(jnp.float32) * w
-        r = test(s0, s1)
-        accept = r.possible & r.finite & ((d >= d_max) | r.small)
-        descend = r.possible & ~accept & (d < d_max)
-        # move on: k + 1, then pop the levels whose both halves are done
-        k_next = k + 1
-        pop = jnp.minimum(_trailing_zeros(k_next), d)
-        k_next, d_next = k_next >> pop, d - pop
-        k = jnp.where(accept, k, jnp.where(descend, 2 * k, k_next))
-        d = jnp.where(accept, d, jnp.where(descend, d + 1, d_next))
-        finished = accept | (~descend & (d_next == 0))
-        return k, d, done | finished, hit | accept, steps + 1
-
-    init = (jnp.int32(0), jnp.int32(0), ~active, jnp.bool_(False), jnp.int32(0))
-    k, d, done, hit, steps = lax.while_loop(cond, body, init)
-    hit = hit & done
-    w = piece_width(d)
-    s = jnp.where(hit, (k.astype(jnp.float32) + 0.5) * w, jnp.inf)
-    return Result(s, hit, steps)
+    out = run_rays(functools.partial(_t_step, test), lambda st: st["going"],
+                   _t_start(d_max, active), _T_RESULTS, max_steps=max_steps, steps="steps")
+    return _t_result(out)
 
 
 def k_bisect(test, k_enter, k_exit, d_max, active, max_steps: int) -> Result:
@@ -137,9 +167,9 @@ def k_bisect(test, k_enter, k_exit, d_max, active, max_steps: int) -> Result:
     d_stop = jnp.clip(jnp.max(d_need), 0, MAX_DEPTH).astype(jnp.int32)
 
     def pieces(k, d):
-        w = piece_width(d)
-        a = K0 + span * (k.astype(jnp.float32) * w)
-        b = K0 + span * ((k + 1).astype(jnp.float32) * w)
+        u0, u1 = piece(k, d)
+        a = K0 + span * u0
+        b = K0 + span * u1
         s_a = (a - k_enter) / safe_dk
         s_b = (b - k_enter) / safe_dk
         s0 = jnp.clip(jnp.minimum(s_a, s_b), 0.0, 1.0)
@@ -161,14 +191,8 @@ def k_bisect(test, k_enter, k_exit, d_max, active, max_steps: int) -> Result:
         s_hit = jnp.where(accept, 0.5 * (s0 + s1), s_hit)
         live = live & ~accept
         descend = jnp.any(cand & ~accept) & (d < d_stop)
-        k_next = k + 1
-        pop = jnp.minimum(_trailing_zeros(k_next), d)
-        k_next, d_next = k_next >> pop, d - pop
-        end = ~descend & (d_next == 0)
-        live = live & ~end
-        k = jnp.where(descend, 2 * k, k_next)
-        d = jnp.where(descend, d + 1, d_next)
-        return k, d, live, hit, s_hit, steps + 1
+        k, d, end = advance(k, d, False, descend)  # the shared piece is never accepted
+        return k, d, live & ~end, hit, s_hit, steps + 1
 
     n = k_enter.shape
     init = (jnp.int32(0), jnp.int32(0), active, jnp.zeros(n, bool),
@@ -177,48 +201,23 @@ def k_bisect(test, k_enter, k_exit, d_max, active, max_steps: int) -> Result:
     return Result(s_hit, hit, jnp.broadcast_to(steps, n))
 
 
-def t_bisect_lanes(test, p, D, d_max, active, lanes: int, max_steps: int) -> Result:
+def t_bisect_lanes(test, p, D, d_max, active, lanes: int | None, max_steps: int) -> Result:
     """t-bisection of a batch of rays [N] on `lanes` persistent lanes with refill
-    (`jaxiso._lanes`; rays that miss the domain never enter the queue). Same per-ray
-    algorithm and results as `t_bisect`. Refilling every 4 steps was best: measured on the
-    2-core CPU (Barth sextic, IA, 512^2, 4096 lanes) every 1 -> 0.42, 2 -> 0.68,
-    4 -> 0.82, 8 -> 0.80 Mrays/s with identical hits (benchmarks/NOTES.md).
+    (`jaxiso._lanes.run_rays`; rays that miss the domain never enter the queue), or, with
+    lanes None, one loop over the batch. Same per-ray step and results as `t_bisect`.
+    Refilling every 4 steps was best: measured on the 2-core CPU (Barth sextic, IA,
+    512^2, 4096 lanes) every 1 -> 0.42, 2 -> 0.68, 4 -> 0.82, 8 -> 0.80 Mrays/s with
+    identical hits (benchmarks/NOTES.md).
 
     Args:
       test: ``test(p, D, s0, s1) -> BoxTest`` vectorised over lanes ([L] / [L, 3]).
       p, D: [N, 3] ray segment start and vector; d_max: [N] int32; active: [N] bool.
-      lanes: static number of lanes of the first phase.
+      lanes: static number of lanes of the first phase, or None.
       max_steps: static bound on iterations per ray.
     """
-    n = p.shape[0]
-    order = jnp.argsort(~active, stable=True).astype(jnp.int32)
-    zeros = jnp.zeros(n, jnp.int32)
-    queue = dict(idx=order, p=p[order], D=D[order], dmax=d_max[order], k=zeros, d=zeros,
-                 steps=zeros, done=jnp.zeros(n, bool), hit=jnp.zeros(n, bool))
+    def step(st):
+        return _t_step(lambda s0, s1: test(st["p"], st["D"], s0, s1), st)
 
-    def step(ln):
-        k, d = ln["k"], ln["d"]
-        w = piece_width(d)
-        r = test(ln["p"], ln["D"], k.astype(jnp.float32) * w, (k + 1).astype(jnp.float32) * w)
-        accept = r.possible & r.finite & ((d >= ln["dmax"]) | r.small)
-        descend = r.possible & ~accept & (d < ln["dmax"])
-        k_next = k + 1
-        pop = jnp.minimum(_trailing_zeros(k_next), d)
-        k_next, d_next = k_next >> pop, d - pop
-        steps = ln["steps"] + 1
-        done = accept | (~descend & (d_next == 0)) | (steps >= max_steps)
-        # an accepted ray keeps (k, d) of its hit piece
-        return dict(ln, k=jnp.where(accept, k, jnp.where(descend, 2 * k, k_next)),
-                    d=jnp.where(accept, d, jnp.where(descend, d + 1, d_next)),
-                    steps=steps, done=done, hit=accept)
-
-    def write(out, ln, target):
-        w = piece_width(ln["d"])
-        s_hit = jnp.where(ln["hit"], (ln["k"].astype(jnp.float32) + 0.5) * w, jnp.inf)
-        return Result(out.s.at[target].set(s_hit, mode="drop"),
-                      out.hit.at[target].set(ln["hit"], mode="drop"),
-                      out.steps.at[target].set(ln["steps"], mode="drop"))
-
-    out = Result(jnp.full(n, jnp.inf, jnp.float32), jnp.zeros(n, bool), zeros)
-    return run_lanes(step, lambda ln: ln["done"], queue, jnp.sum(active).astype(jnp.int32),
-                     out, write, lanes=lanes)
+    out = run_rays(step, lambda st: st["going"], dict(_t_start(d_max, active), p=p, D=D),
+                   _T_RESULTS, max_steps=max_steps, steps="steps", lanes=lanes)
+    return _t_result(out)

@@ -1,0 +1,205 @@
+"""The stackless bisection kernels of `jaxiso.implicit._bisect`: the shared walk
+`advance`, and t-bisection over a packet (`t_bisect` under vmap, the packet path) and on
+persistent lanes (`t_bisect_lanes`), against a depth-first bisection with an explicit
+stack per ray written here in numpy."""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxiso import surfaces
+from jaxiso.implicit import _bisect
+from jaxiso.implicit._field import contains_any, enclosure, extended, ray_boxes, ray_segments
+
+# ------------------------------------------------------------------------- reference
+
+
+def stack_bisect(test, d_max, active, max_steps):
+    """Depth-first bisection of [0, 1] with an explicit stack per ray; all rays advance
+    together so that `test` sees one batch per round.
+
+    test(s0 [P], s1 [P]) -> (possible, finite, small), numpy bool [P] each. A ray tests
+    the piece on top of its stack: it accepts it (possible, finite, and at depth d_max or
+    small), splits it (possible, above d_max: first half on top), or drops it; it stops
+    on an accepted piece, an empty stack or after max_steps tests.
+    Returns (s [P] float32, midpoint of the accepted piece or inf; hit [P]; steps [P]).
+    """
+    n = len(d_max)
+    stacks = [[(0, 0)] if a else [] for a in np.asarray(active)]
+    steps = np.zeros(n, np.int32)
+    hit = np.zeros(n, bool)
+    s = np.full(n, np.inf, np.float32)
+    while True:
+        live = [i for i in range(n) if stacks[i] and steps[i] < max_steps]
+        if not live:
+            return s, hit, steps
+        k = np.zeros(n, np.int64)
+        d = np.zeros(n, np.int64)
+        for i in live:
+            k[i], d[i] = stacks[i].pop()
+        w = np.float32(2.0) ** -d.astype(np.float32)  # exact powers of two
+        s0, s1 = k.astype(np.float32) * w, (k + 1).astype(np.float32) * w
+        possible, finite, small = (np.asarray(a) for a in test(s0, s1))
+        for i in live:
+            steps[i] += 1
+            if possible[i] and finite[i] and (d[i] >= d_max[i] or small[i]):
+                hit[i] = True
+                s[i] = (np.float32(k[i]) + np.float32(0.5)) * w[i]
+                stacks[i].clear()
+            elif possible[i] and d[i] < d_max[i]:
+                stacks[i] += [(2 * k[i] + 1, d[i] + 1), (2 * k[i], d[i] + 1)]
+
+
+def _packet(test, d_max, active, max_steps):
+    """The packet path: `t_bisect` per ray under vmap (test(p, D, s0, s1) per ray)."""
+    def one(p, D, d_max, active):
+        return _bisect.t_bisect(functools.partial(test, p, D), d_max, active, max_steps)
+    return jax.vmap(one)
+
+
+def _kernels(test, max_steps, lanes, paths=("packet", "lanes", "one_loop")):
+    """{path: jitted (p, D, d_max, active) -> Result}: the packet path, lanes, and
+    `t_bisect_lanes` with lanes None (one loop over the batch)."""
+    def packet(p, D, d_max, active):
+        return _packet(test, d_max, active, max_steps)(p, D, d_max, active)
+
+    def on_lanes(p, D, d_max, active):
+        return _bisect.t_bisect_lanes(test, p, D, d_max, active, lanes, max_steps)
+
+    def one_loop(p, D, d_max, active):
+        return _bisect.t_bisect_lanes(test, p, D, d_max, active, None, max_steps)
+
+    kernels = {"packet": packet, "lanes": on_lanes, "one_loop": one_loop}
+    return {path: jax.jit(kernels[path]) for path in paths}
+
+
+def _assert_same(res, ref, path):
+    s, hit, steps = ref
+    np.testing.assert_array_equal(np.asarray(res.hit), hit, err_msg=path)
+    np.testing.assert_array_equal(np.asarray(res.steps), steps, err_msg=path)
+    np.testing.assert_array_equal(np.asarray(res.s), s, err_msg=path)
+
+
+# ------------------------------------------------------------------------- advance
+
+
+def _preorder(depth):
+    """(k, d) of the full binary tree of pieces down to `depth`, depth first."""
+    out = []
+
+    def visit(k, d):
+        out.append((k, d))
+        if d < depth:
+            visit(2 * k, d + 1)
+            visit(2 * k + 1, d + 1)
+    visit(0, 0)
+    return out
+
+
+@pytest.mark.parametrize("jit", [False, True])
+def test_advance_walks_every_piece_depth_first(jit):
+    depth = 4
+    step = jax.jit(_bisect.advance) if jit else _bisect.advance
+    k, d, finished, seen = jnp.int32(0), jnp.int32(0), False, []
+    while not finished:
+        seen.append((int(k), int(d)))
+        k, d, finished = step(k, d, False, d < depth)
+        assert len(seen) <= 2 ** (depth + 1)
+    assert seen == _preorder(depth)
+
+
+def test_advance_accept_stays_and_finishes_under_vmap():
+    k = jnp.array([5, 5, 5, 7], jnp.int32)
+    d = jnp.array([3, 3, 3, 3], jnp.int32)
+    accept = jnp.array([True, False, False, False])
+    descend = jnp.array([True, True, False, False])
+    k2, d2, fin = jax.vmap(_bisect.advance)(k, d, accept, descend)
+    # stay; first half; next piece 6 = 0b110 pops one level to (3, 2); 8 pops out of [0, 1]
+    np.testing.assert_array_equal(np.asarray(k2), [5, 10, 3, 1])
+    np.testing.assert_array_equal(np.asarray(d2), [3, 4, 2, 0])
+    np.testing.assert_array_equal(np.asarray(fin), [True, False, False, True])
+
+
+# ------------------------------------------------------------- t-bisection, exact oracle
+
+
+def _oracle(p, D, s0, s1):
+    """A box test with exact float32 arithmetic (the same bits in numpy and under any
+    XLA fusion): p[..., 0] is a root position (nan: none), the enclosure is the piece
+    widened by half its width on each side (so neighbours of a root are possible too,
+    and the walk backtracks), it is unbounded on pieces that reach into [D[..., 0],
+    D[..., 1]], and small where the piece is at most D[..., 2] long."""
+    half = 0.5 * (s1 - s0)
+    root = p[..., 0]
+    possible = (root >= s0 - half) & (root <= s1 + half)
+    finite = ~((s1 > D[..., 0]) & (s0 < D[..., 1]))
+    return _bisect.BoxTest(possible, finite, (s1 - s0) <= D[..., 2])
+
+
+def _oracle_rays(n=256, seed=0):
+    rng = np.random.default_rng(seed)
+    root = rng.uniform(0.0, 1.0, n).astype(np.float32)
+    root[rng.random(n) < 0.2] = np.nan  # no root
+    root[:4] = [0.0, 1.0, 0.5, 0.75]      # on piece boundaries and the segment's ends
+    bad = np.full((n, 2), 2.0, np.float32)  # no asymptote
+    pick = rng.random(n) < 0.25
+    lo = rng.uniform(0.0, 1.0, n).astype(np.float32)
+    bad[pick] = np.stack([lo, lo + 0.1], -1)[pick]
+    small = np.where(rng.random(n) < 0.2, 2.0 ** -rng.integers(3, 12, n), 0.0)
+    p = np.stack([root, np.zeros(n), np.zeros(n)], -1).astype(np.float32)
+    D = np.concatenate([bad, small[:, None]], -1).astype(np.float32)
+    d_max = rng.integers(0, _bisect.MAX_DEPTH + 1, n).astype(np.int32)
+    d_max[4:8] = _bisect.MAX_DEPTH  # float32(k) rounds past depth 24
+    active = rng.random(n) < 0.9
+    return p, D, d_max, active
+
+
+@pytest.mark.parametrize("max_steps", [8, 64, 256 * _bisect.MAX_DEPTH])
+def test_t_bisection_matches_stack_reference_exact_oracle(max_steps):
+    p, D, d_max, active = _oracle_rays()
+    ref = stack_bisect(lambda s0, s1: _oracle(p, D, s0, s1), d_max, active, max_steps)
+    assert ref[1].sum() > 10 and (~ref[1]).sum() > 10
+    assert ((ref[2] >= max_steps).sum() > 0) == (max_steps < 256)  # some run out
+    for path, run in _kernels(_oracle, max_steps, lanes=32).items():
+        _assert_same(run(p, D, d_max, active), ref, path)
+    # eagerly (packet path)
+    _assert_same(_packet(_oracle, d_max, active, max_steps)(p, D, d_max, active), ref,
+                 "eager")
+
+
+# ------------------------------------------------------- t-bisection, catalogue surfaces
+
+
+def _surface_test(scene, arithmetic):
+    F = extended(scene.field, arithmetic, "fast")
+
+    def test(p, D, s0, s1):
+        boxes = ray_boxes(p, D, s0, s1, arithmetic)
+        r = enclosure(F, boxes, scene.w, scene.params, arithmetic)
+        possible, finite = contains_any(r, scene.isovalues)
+        return _bisect.BoxTest(possible, finite, jnp.zeros_like(possible))
+    return test
+
+
+@pytest.mark.parametrize("name,arithmetic", [("sphere", "interval"),
+                                             ("barth_sextic", "affine"),
+                                             ("steiner", "interval"),
+                                             ("teardrop", "interval")])
+def test_t_bisection_matches_stack_reference_on_surfaces(name, arithmetic):
+    """32 x 32 camera rays: the kernels and the reference see the same box test, so hits,
+    step counts and hit parameters are equal bit for bit."""
+    scene = surfaces.scene(name)
+    rays = surfaces.camera(name, 32).rays().reshape((-1,))
+    _, _, inside, p, D = ray_segments(rays, scene.lo, scene.hi, 0.0, jnp.inf)
+    d_max = _bisect.depth_for(jnp.linalg.norm(D, axis=-1), scene.eps)
+    test = _surface_test(scene, arithmetic)
+    batch_test = jax.jit(test)
+    max_steps = 256 * _bisect.MAX_DEPTH
+    ref = stack_bisect(lambda s0, s1: batch_test(p, D, s0, s1), np.asarray(d_max),
+                       np.asarray(inside), max_steps)
+    assert ref[1].sum() > 50
+    for path, run in _kernels(test, max_steps, lanes=64, paths=("packet", "lanes")).items():
+        _assert_same(run(p, D, d_max, inside), ref, path)
