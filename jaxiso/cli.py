@@ -1,5 +1,10 @@
 """Command line: ``jaxiso gallery`` (default) renders the catalogue of test surfaces;
 ``jaxiso demo`` prints interval vs affine enclosures.
+
+Bad arguments (unknown surface names, a negative seed, a size out of range, an output path
+that is not a writable directory) are reported as argparse reports its own: usage and a
+one-line error on stderr, exit status 2, before any rendering. An OSError while working
+(e.g. a full disk) is one line on stderr and status 1.
 """
 
 from __future__ import annotations
@@ -58,15 +63,6 @@ def _gallery(args) -> int:
     from .render import Shading
 
     names = args.names or surfaces.names()
-    unknown = [n for n in names if n not in surfaces.names()]
-    if unknown:
-        print(f"unknown surfaces: {', '.join(unknown)}; known: {', '.join(surfaces.names())}",
-              file=sys.stderr)
-        return 2
-    if args.size < 8:
-        print("--size must be at least 8", file=sys.stderr)
-        return 2
-    os.makedirs(args.out, exist_ok=True)
     print(f"jaxiso gallery: {len(names)} surfaces at {args.size}x{args.size} -> {args.out} "
           f"(jax {jax.__version__}, {jax.default_backend()})", flush=True)
     shading = Shading(shadows=args.shadows)
@@ -114,6 +110,40 @@ def _truth(c) -> str:
     return "unknown"
 
 
+# gallery image edge in pixels: below 8 the contact sheet is unreadable, above 8192 one
+# image is 67M rays (minutes on a GPU, hours on a CPU) and its buffers some GiB
+MIN_SIZE, MAX_SIZE = 8, 8192
+
+
+def _check(args, parser) -> None:
+    """Exit through `parser.error` (status 2) on the first bad argument of `args`."""
+    from . import surfaces
+
+    known = surfaces.names()
+    unknown = [n for n in args.names or () if n not in known]
+    if unknown:
+        parser.error(f"unknown surfaces: {', '.join(unknown)}; known: {', '.join(known)}")
+    if args.command == "demo" and args.seed < 0:
+        parser.error(f"--seed must be >= 0, got {args.seed}")
+    if args.command == "gallery":
+        if not MIN_SIZE <= args.size <= MAX_SIZE:
+            parser.error(f"--size must be in [{MIN_SIZE}, {MAX_SIZE}], got {args.size}")
+        _check_out(args.out, parser)
+
+
+def _check_out(out: str, parser) -> None:
+    """`out` is (made) a writable directory; checked up front so that a bad path fails
+    before minutes of rendering, not at the first image written."""
+    if os.path.exists(out) and not os.path.isdir(out):
+        parser.error(f"--out {out}: not a directory")
+    try:
+        os.makedirs(out, exist_ok=True)
+    except OSError as err:
+        parser.error(f"--out {out}: cannot create the directory ({err.strerror or err})")
+    if not os.access(out, os.W_OK | os.X_OK):
+        parser.error(f"--out {out}: the directory is not writable")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="jaxiso", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command")
@@ -128,14 +158,14 @@ def main(argv=None) -> int:
     gallery.add_argument("--arithmetic", choices=("interval", "affine"),
                          help="override each surface's default arithmetic")
     args = parser.parse_args(argv)
-    if args.command in (None, "gallery"):
-        if args.command is None:
-            args = gallery.parse_args([])
-        return _gallery(args)
-    if args.command == "demo":
-        return _demo(args)
-    parser.error(f"unknown command {args.command}")
-    return 2
+    if args.command is None:
+        args = gallery.parse_args([], argparse.Namespace(command="gallery"))
+    _check(args, {"gallery": gallery, "demo": demo}[args.command])
+    try:
+        return {"gallery": _gallery, "demo": _demo}[args.command](args)
+    except OSError as err:  # the disk filling up, a directory removed while rendering
+        print(f"jaxiso {args.command}: error: {err}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

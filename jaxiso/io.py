@@ -54,7 +54,9 @@ def load_volume(path, *, shape=None, dtype=None, order: str = "C", offset: int =
         (a trailing time axis of length 1 is dropped);
       * ``.vti`` (VTK XML image data): read here for ascii, base64 and appended (raw or base64)
         arrays, uncompressed or zlib/lzma compressed; other variants go to pyvista when it is
-        installed. `array` names the point-data array (default: the scalars, else the first);
+        installed. `array` names the point-data array (default: the scalars, else the first).
+        The pieces must cover WholeExtent and each must hold exactly the values its Extent
+        needs (checked before anything is allocated);
       * anything else is a headerless raw brick: `shape` and `dtype` are required, `offset`
         bytes are skipped, `order` ("C": last index fastest, "F": first index fastest) gives
         the layout, and the file must hold exactly offset + prod(shape) * itemsize bytes.
@@ -220,32 +222,79 @@ def _parse_vti(raw: bytes, name):
     header_type = np.dtype(endian + _VTK_TYPES[root.get("header_type", "UInt32")])
     compressor = root.get("compressor")
     image = root.find("ImageData")
-    whole = [int(v) for v in image.get("WholeExtent").split()]
+    whole = _extent(image.get("WholeExtent"), "WholeExtent")
     spacing = [float(v) for v in image.get("Spacing", "1 1 1").split()]
     origin = [float(v) for v in image.get("Origin", "0 0 0").split()]
     direction = image.get("Direction")
     if direction is not None and not np.allclose([float(v) for v in direction.split()],
                                                   np.eye(3).ravel()):
         raise _Unsupported("a rotated image (Direction is not the identity)")
-    dims = tuple(whole[2 * a + 1] - whole[2 * a] + 1 for a in range(3))
+    pieces = image.findall("Piece")
+    if not pieces:
+        raise ValueError("no Piece in ImageData")
+    extents = [_extent(p.get("Extent"), f"Piece {i} Extent") for i, p in enumerate(pieces)]
+    # Before decoding or allocating anything: the pieces must tile WholeExtent, so the
+    # output is never larger than the values the file actually holds.
+    _check_tiling(whole, extents)
     appended = root.find("AppendedData")
     codec = _Codec(header_type, compressor, endian)
-    out = None
-    for piece in image.findall("Piece"):
+    decoded = []
+    for i, (piece, ext) in enumerate(zip(pieces, extents)):
         arr = _pick_array(piece.find("PointData"), name)
-        ext = [int(v) for v in piece.get("Extent").split()]
-        pdims = tuple(ext[2 * a + 1] - ext[2 * a] + 1 for a in range(3))
-        values = codec.decode(arr, appended, payload, math.prod(pdims))
-        if out is None:
-            out = np.zeros(dims, values.dtype)
+        values = codec.decode(arr, appended, payload, math.prod(_dims(ext)), f"Piece {i}")
+        decoded.append((ext, values))
+    out = np.zeros(_dims(whole), decoded[0][1].dtype)
+    for ext, values in decoded:
         sl = tuple(slice(ext[2 * a] - whole[2 * a], ext[2 * a + 1] - whole[2 * a] + 1)
                    for a in range(3))
-        out[sl] = values.reshape(pdims, order="F")  # VTK runs x fastest
-    if out is None:
-        raise ValueError("no Piece in ImageData")
+        out[sl] = values.reshape(_dims(ext), order="F")  # VTK runs x fastest
     # the grid's first node sits at Origin + WholeExtent start * Spacing
     first = tuple(o + whole[2 * a] * s for a, (o, s) in enumerate(zip(origin, spacing)))
     return out, {"spacing": tuple(spacing), "origin": first, "array": arr.get("Name")}
+
+
+def _extent(text, what) -> list[int]:
+    """Six ints x0 x1 y0 y1 z0 z1 (inclusive node ranges) with x0 <= x1 etc."""
+    ext = [int(v) for v in (text or "").split()]
+    if len(ext) != 6 or any(ext[2 * a] > ext[2 * a + 1] for a in range(3)):
+        raise ValueError(f"{what} must be six ints 'x0 x1 y0 y1 z0 z1' with x0 <= x1 etc., "
+                         f"got {text!r}")
+    return ext
+
+
+def _dims(ext) -> tuple[int, int, int]:
+    return tuple(ext[2 * a + 1] - ext[2 * a] + 1 for a in range(3))
+
+
+def _check_tiling(whole, extents):
+    """Every piece lies inside WholeExtent and together they cover all of it; else a
+    ValueError naming the offending piece or an uncovered extent. Pieces may overlap
+    (parallel writers share boundary nodes). Works on the grid of piece boundaries, never on
+    the voxels, so a huge declared extent costs nothing."""
+    for i, ext in enumerate(extents):
+        if any(ext[2 * a] < whole[2 * a] or ext[2 * a + 1] > whole[2 * a + 1]
+               for a in range(3)):
+            raise ValueError(f"Piece {i} Extent {_fmt(ext)} lies outside WholeExtent "
+                             f"{_fmt(whole)}")
+    # per axis, the sorted boundaries split the whole range into slabs [cuts[j], cuts[j+1])
+    cuts = [np.unique([whole[2 * a], whole[2 * a + 1] + 1]
+                      + [e[2 * a] for e in extents] + [e[2 * a + 1] + 1 for e in extents])
+            for a in range(3)]
+    covered = np.zeros([len(c) - 1 for c in cuts], bool)
+    for ext in extents:
+        covered[tuple(slice(np.searchsorted(c, ext[2 * a]),
+                            np.searchsorted(c, ext[2 * a + 1] + 1))
+                      for a, c in enumerate(cuts))] = True
+    if not covered.all():
+        cell = np.argwhere(~covered)[0]
+        hole = [int(v) for a, j in enumerate(cell) for v in (cuts[a][j], cuts[a][j + 1] - 1)]
+        raise ValueError(f"the pieces do not cover WholeExtent {_fmt(whole)}: nothing "
+                         f"holds extent {_fmt(hole)} ({int((~covered).sum())} uncovered "
+                         "block(s))")
+
+
+def _fmt(ext) -> str:
+    return "'" + " ".join(str(v) for v in ext) + "'"
 
 
 def _pick_array(point_data, name):
@@ -277,7 +326,7 @@ class _Codec:
         if self.decompress == "?":
             raise _Unsupported(f"compressor {compressor}")
 
-    def decode(self, arr, appended, payload, count):
+    def decode(self, arr, appended, payload, count, where):
         dtype = np.dtype(self.endian + _VTK_TYPES[arr.get("type")])
         fmt = arr.get("format", "ascii")
         if fmt == "ascii":
@@ -294,10 +343,10 @@ class _Codec:
                 raise _Unsupported(f"appended encoding {appended.get('encoding')}")
         else:
             raise ValueError(f"unknown DataArray format {fmt!r}")
-        if values.size < count:
-            raise ValueError(f"array {arr.get('Name')!r} holds {values.size} values, "
-                             f"the extent needs {count}")
-        return values[:count]
+        if values.size != count:  # too many is as corrupt as too few: never truncate
+            raise ValueError(f"{where}: array {arr.get('Name')!r} holds {values.size} "
+                             f"values, its Extent needs {count}")
+        return values
 
     def _header_size(self, first: int) -> int:
         """Number of header integers given the first one (the block count if compressed)."""

@@ -27,8 +27,7 @@ rows, so that a traversal step reads one float row and one int row:
 
 `BVH.lo`, `hi`, `count`, `first`, `skip`, `split_axis` and `escape` ([8, N]) read these.
 
-A mesh whose tets are all degenerate gets a single empty leaf (count 0, lo = inf,
-hi = -inf) that no traversal enters.
+A mesh whose tets are all degenerate has nothing to bound: `build_bvh` raises ValueError.
 
 Builds run in numpy, level by level with no Python loop per node: "bih" splits at spatial
 medians through Morton codes (a binary radix tree), "sah" by a 16-bin surface area
@@ -45,7 +44,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxiso.tetra._mesh import TetMesh, corner_points, degenerate_mask
+from jaxiso.tetra._mesh import TetMesh, check_renderable, corner_points, degenerate_mask
 
 __all__ = ["BVH", "build_bvh", "refit", "refit_jax", "memory_report", "bvh_stats",
            "right_first", "octant_of", "METHODS"]
@@ -140,7 +139,11 @@ def build_bvh(mesh: TetMesh, *, method: str = "bih", leaf_size: int = 8,
         raise ValueError(f"leaf_size must be >= 1, got {leaf_size}")
     _check_step(mesh, step)
     points, tets = np.asarray(mesh.points), np.asarray(mesh.tets)
-    kept = np.flatnonzero(~degenerate_mask(points, tets)).astype(np.int32)
+    degenerate = degenerate_mask(points, tets)
+    # `tet_mesh` refuses such meshes too, but the raw constructor and `with_points` do not;
+    # an empty tree would fail much later, as an index error inside the traversal.
+    check_renderable(degenerate, tets)
+    kept = np.flatnonzero(~degenerate).astype(np.int32)
     corners = corner_points(points, tets[kept])  # 4 x [T', 3]
     if method == "bih":
         perm, split = _morton_splitter(sum(corners) / 4)
@@ -151,7 +154,7 @@ def build_bvh(mesh: TetMesh, *, method: str = "bih", leaf_size: int = 8,
         *_grow(kept.size, int(leaf_size), split))
     n = skip.size
     right = np.zeros(n, np.int32)
-    inner = np.flatnonzero((count == 0) & (np.arange(n) + 1 < n))
+    inner = np.flatnonzero(count == 0)
     right[inner] = skip[inner + 1]
     slot_lo, slot_hi = _slot_bounds(points, tets, np.asarray(mesh.values)[step], kept[perm])
     lo, hi = _node_bounds(slot_lo, slot_hi, count, first, skip, levels, level_sizes)
@@ -181,7 +184,6 @@ def _split_axes(lo, hi, count, skip, right):
     the right child lies lower on it (0 for leaves), from node bounds lo, hi [N, 4]."""
     lo, hi = np.asarray(lo, np.float64)[:, :3], np.asarray(hi, np.float64)[:, :3]
     inner = np.flatnonzero(count == 0)
-    inner = inner[inner + 1 < skip.size]  # the lone empty leaf of a degenerate mesh
     left, right = inner + 1, right[inner]
     gap = (lo[right] + hi[right]) - (lo[left] + hi[left])
     gap = np.where(np.isfinite(gap), gap, 0.0)
@@ -347,9 +349,8 @@ def _preorder(start, end, depth, rights, leaf):
     own_leaves = np.searchsorted(leaf_starts, end) - left_leaves
     pre = depth + 2 * left_leaves - rights
     n = start.size
-    # max(., 1): the lone empty leaf of an all-degenerate mesh still spans one node.
     skip = np.empty(n, np.int32)
-    skip[pre] = pre + np.maximum(2 * own_leaves - 1, 1)
+    skip[pre] = pre + 2 * own_leaves - 1
     first, count, node_depth, is_leaf = (np.empty(n, t) for t in (np.int32,) * 3 + (bool,))
     first[pre], count[pre], node_depth[pre], is_leaf[pre] = (
         start, np.where(leaf, end - start, 0), depth, leaf)

@@ -4,21 +4,25 @@ A `TetMesh` holds vertex positions, tets (4 vertex indices each) and S time step
 per-vertex scalar field. Build it with `tet_mesh` (alias `TetMesh.create`), `from_meshio`
 or `from_pyvista`, which validate the input:
 
-* shapes, integer tets with indices in [0, V), at least one tet: ``ValueError`` /
-  ``IndexError`` naming the first bad tet;
+* shapes (``ValueError``), real coordinates and values and integer tets (``TypeError``),
+  tet indices in [0, V) (``IndexError`` naming the first bad tet), at least one tet;
 * non-finite coordinates or values: ``ValueError`` with the count and the first index
   (non-finite values are rejected, not masked: a NaN vertex would poison every min/max
   bound of the implicit BVH above it);
 * inverted tets (negative signed volume) are reoriented by swapping their last two vertices;
 * degenerate tets (a repeated vertex, or ``|volume| <= 1e-12 * bbox_diag**3``) are kept in
   the mesh, so vertex and tet indices stay those of the input, but `build_bvh` leaves them
-  out: they bound no volume, so no ray can cross their interior.
+  out: they bound no volume, so no ray can cross their interior. A mesh whose tets are
+  *all* degenerate has nothing to render: ``ValueError`` (here and in `build_bvh`).
 
 Both are reported by a ``UserWarning`` with counts and by `TetMesh.report()`.
 
-The arrays are stored as numpy (float32 / int32), which jax accepts as pytree leaves; the
-dataclass constructor itself checks nothing, so `jax.tree.map` and jit can rebuild meshes
-from tracers.
+The arrays are stored as numpy (float32 / int32), which jax accepts as pytree leaves. The
+dataclass constructor ``TetMesh(points, tets, values)`` runs the same shape, dtype, index
+and finiteness checks when it is given host data (numpy arrays or lists; values [V] become
+one step [1, V]) but does not reorient or look for degenerate tets. jax arrays and anything
+else (tracers, axis specs) pass unchecked, so jit, vmap and `jax.tree.map` can rebuild
+meshes from them.
 """
 
 from __future__ import annotations
@@ -30,7 +34,7 @@ import jax
 import numpy as np
 
 __all__ = ["TetMesh", "tet_mesh", "from_meshio", "from_pyvista", "signed_volumes",
-           "corner_points", "degenerate_mask", "DEGENERATE_RTOL"]
+           "corner_points", "degenerate_mask", "check_renderable", "DEGENERATE_RTOL"]
 
 # A tet is degenerate when |volume| <= DEGENERATE_RTOL * (bbox diagonal)^3 of the mesh.
 DEGENERATE_RTOL = 1e-12
@@ -47,7 +51,8 @@ class TetMesh:
     Attributes:
       points: float32 [V, 3] vertex positions.
       tets: int32 [T, 4] vertex indices, positively oriented after `tet_mesh`.
-      values: float32 [S, V] scalar field per time step.
+      values: float32 [S, V] scalar field per time step ([V] given to the constructor is
+        stored as [1, V]).
       reoriented: static int, how many inverted tets `tet_mesh` / `with_points` swapped.
     """
 
@@ -55,6 +60,18 @@ class TetMesh:
     tets: np.ndarray
     values: np.ndarray
     reoriented: int = dataclasses.field(default=0, metadata=dict(static=True))
+
+    def __post_init__(self):
+        # Host data is what a user hands in: check it here, where a bad shape is still easy
+        # to name, rather than as an IndexError deep in the BVH build. jax arrays, tracers
+        # and pytree placeholders come from jit / vmap / tree.map and pass as they are.
+        if not all(isinstance(a, (np.ndarray, list, tuple))
+                   for a in (self.points, self.tets, self.values)):
+            return
+        points = _checked_points(self.points)
+        object.__setattr__(self, "points", points)
+        object.__setattr__(self, "tets", _checked_tets(self.tets, points.shape[0]))
+        object.__setattr__(self, "values", _checked_values(self.values, points.shape[0]))
 
     @staticmethod
     def create(points, tets, values) -> TetMesh:
@@ -162,6 +179,7 @@ def tet_mesh(points, tets, values) -> TetMesh:
     tets = _checked_tets(tets, points.shape[0])
     values = _checked_values(values, points.shape[0])
     tets, flipped, degenerate = _orient(points, tets)
+    check_renderable(degenerate, tets)
     _warn_quality(flipped, degenerate, points, tets)
     return TetMesh(points, tets, values, int(flipped.sum()))
 
@@ -216,8 +234,25 @@ def _repeated_vertex(tets) -> np.ndarray:
     return np.any(s[:, 1:] == s[:, :-1], axis=1)
 
 
+def check_renderable(degenerate, tets):
+    """ValueError when every tet is degenerate: the BVH would hold no tet at all."""
+    if degenerate.size and degenerate.all():
+        repeated = int(_repeated_vertex(np.asarray(tets)).sum())
+        raise ValueError(f"all {degenerate.size} tets are degenerate (zero volume; {repeated}"
+                         " with a repeated vertex); nothing to render")
+
+
+def _real(a, name) -> np.ndarray:
+    """np.asarray(a), TypeError unless it holds real numbers (a complex array would lose
+    its imaginary part silently in the float32 cast)."""
+    a = np.asarray(a)
+    if a.dtype.kind not in "iuf":
+        raise TypeError(f"{name} must hold real numbers, got dtype {a.dtype}")
+    return a
+
+
 def _checked_points(points) -> np.ndarray:
-    points = np.asarray(points)
+    points = _real(points, "points")
     if points.ndim != 2 or points.shape[1] != 3 or points.shape[0] == 0:
         raise ValueError(f"points must be [V, 3] with V >= 1, got shape {points.shape}")
     # Cast first: float64 coordinates beyond float32's range become inf and are caught here.
@@ -236,8 +271,8 @@ def _checked_tets(tets, n_points) -> np.ndarray:
         raise ValueError(f"tets must be [T, 4], got shape {tets.shape}")
     if tets.shape[0] == 0:
         raise ValueError("the mesh has no tets (T == 0)")
-    if not np.issubdtype(tets.dtype, np.integer):
-        raise ValueError(f"tets must hold integer vertex indices, got dtype {tets.dtype}")
+    if tets.dtype.kind not in "iu":
+        raise TypeError(f"tets must hold integer vertex indices, got dtype {tets.dtype}")
     bad = np.any((tets < 0) | (tets >= n_points), axis=1)
     if bad.any():
         i = _first(bad)
@@ -247,12 +282,13 @@ def _checked_tets(tets, n_points) -> np.ndarray:
 
 
 def _checked_values(values, n_points) -> np.ndarray:
-    values = np.asarray(values)
+    values = _real(values, "values")
+    given = values.shape
     if values.ndim == 1:
         values = values[None]
     if values.ndim != 2 or values.shape[1] != n_points or values.shape[0] == 0:
         raise ValueError(f"values must be [V] or [S, V] with V = {n_points}, "
-                         f"got shape {np.shape(values)}")
+                         f"got shape {given}")
     with np.errstate(over="ignore"):
         values = values.astype(np.float32)
     bad = ~np.isfinite(values)

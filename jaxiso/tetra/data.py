@@ -80,9 +80,12 @@ def cube_tets(n=8, *, split: int = 6, lo=(0.0, 0.0, 0.0), hi=(1.0, 1.0, 1.0)):
     Returns (points float32 [(nx+1)(ny+1)(nz+1), 3], tets int32 [split * nx ny nz, 4]).
     Vertex (i, j, k) has index (i * (ny + 1) + j) * (nz + 1) + k.
     """
-    counts = np.broadcast_to(np.asarray(n, np.int64), (3,))
-    if np.any(counts < 1):
-        raise ValueError(f"n must be positive, got {n}")
+    counts = np.asarray(n)
+    if (counts.dtype.kind not in "iuf" or counts.shape not in ((), (3,))
+            or not np.all(np.isfinite(counts)) or not np.all(counts == np.round(counts))
+            or np.any(counts < 1)):
+        raise ValueError(f"n must be a positive int or 3 of them, got {n!r}")
+    counts = np.broadcast_to(counts.astype(np.int64), (3,))
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
     if lo.shape != (3,) or hi.shape != (3,) or not np.all(hi > lo):
         raise ValueError(f"need 3-vectors with hi > lo, got lo={lo}, hi={hi}")
@@ -108,6 +111,15 @@ def cube_tets(n=8, *, split: int = 6, lo=(0.0, 0.0, 0.0), hi=(1.0, 1.0, 1.0)):
     else:
         raise ValueError(f"split must be 5 or 6, got {split}")
     return points.astype(np.float32), tets.reshape(-1, 4).astype(np.int32)
+
+
+def _positive_int(value, name: str) -> int:
+    """int(value) for a positive whole number; 2.5 or NaN is an error, not truncated."""
+    v = np.asarray(value)
+    if (v.shape != () or v.dtype.kind not in "iuf" or not np.isfinite(v) or v != np.round(v)
+            or v < 1):
+        raise ValueError(f"{name} must be a positive int, got {value!r}")
+    return int(v)
 
 
 def sphere_field(points, center=(0.5, 0.5, 0.5), radius: float = 0.35):
@@ -144,9 +156,7 @@ def replicate(points, tets, values, k: int, *, gap: float = 0.1):
     Returns (points float32 [k^3 V, 3], tets int32 [k^3 T, 4], values [..., k^3 V]); copy
     c = (a * k + b) * k + d holds vertices c V .. (c + 1) V - 1 and tets c T .. (c + 1) T - 1.
     """
-    k = int(k)
-    if k < 1:
-        raise ValueError(f"k must be positive, got {k}")
+    k = _positive_int(k, "k")
     p = np.asarray(points, np.float64)
     t = np.asarray(tets, np.int64)
     v = np.asarray(values)
@@ -227,8 +237,9 @@ def time_series(points, steps: int, *, duration: float = 2.0 * np.pi, field=None
     field defaults to `wave_field` (period 2 pi, so the default series loops seamlessly).
     Returns float32 [steps, V].
     """
+    steps = _positive_int(steps, "steps")
     field = wave_field if field is None else field
-    times = np.arange(int(steps)) * (duration / int(steps))
+    times = np.arange(steps) * (duration / steps)
     return np.stack([np.asarray(field(points, t), np.float32) for t in times])
 
 

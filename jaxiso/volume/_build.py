@@ -35,7 +35,7 @@ import numpy as np
 
 from ._octree import OctreeVolume
 
-__all__ = ["build_octree"]
+__all__ = ["build_octree", "checked_geometry", "validated"]
 
 _KEPT_DTYPES = tuple(np.dtype(t) for t in ("uint8", "int8", "uint16", "int16", "float16",
                                            "float32"))
@@ -99,11 +99,28 @@ def _clamped(data: np.ndarray, iso_range) -> np.ndarray:
 
 
 def _vector3(value, name: str) -> np.ndarray:
-    """[3] float32 from a scalar or a 3-vector."""
-    v = np.broadcast_to(np.asarray(value, np.float64), (3,)).astype(np.float32)
+    """[3] float32 from a finite real scalar or 3-vector."""
+    v = np.asarray(value)
+    if v.dtype.kind not in "biuf":
+        raise TypeError(f"{name} must be a real scalar or 3-vector, got {value!r}")
+    if v.shape not in ((), (1,), (3,)):
+        raise ValueError(f"{name} must be a scalar or a 3-vector, got shape {v.shape}: "
+                         f"{value!r}")
+    with np.errstate(over="ignore"):  # beyond float32's range -> inf, rejected below
+        v = np.broadcast_to(v.astype(np.float64), (3,)).astype(np.float32)
     if not np.all(np.isfinite(v)):
-        raise ValueError(f"{name} must be finite, got {value}")
+        raise ValueError(f"{name} must be finite, got {value!r}")
     return v
+
+
+def checked_geometry(spacing, origin) -> tuple[np.ndarray, np.ndarray]:
+    """(spacing, origin) as [3] float32: finite, spacing > 0 (also after the float32 cast,
+    which flushes tiny spacings to 0). A zero or negative spacing would map every voxel to
+    one point or flip the box (lo > hi), so it is an error, not an empty image."""
+    spacing_v = _vector3(spacing, "spacing")
+    if not np.all(spacing_v > 0):
+        raise ValueError(f"spacing must be > 0 on every axis, got {spacing!r}")
+    return spacing_v, _vector3(origin, "origin")
 
 
 # ------------------------------------------------------------------- pyramid helpers
@@ -323,15 +340,16 @@ def _progress_reporter(progress, n_voxels: int):
     return report
 
 
-def _validated(data) -> np.ndarray:
-    """np.asarray(data), checked to be a non-empty 3-D array of real numbers."""
+def validated(data, what: str = "octree volumes") -> np.ndarray:
+    """np.asarray(data), checked to be a non-empty 3-D array of real numbers (complex data
+    is a TypeError: casting would silently drop the imaginary part)."""
     data = np.asarray(data)
     if data.dtype.kind not in "biuf":
-        raise TypeError(f"octree volumes hold real numbers; got dtype {data.dtype}")
+        raise TypeError(f"{what} hold real numbers; got dtype {data.dtype}")
     if data.ndim != 3:
-        raise ValueError(f"octree volumes need a 3-D array, got shape {data.shape}")
+        raise ValueError(f"{what} need a 3-D array, got shape {data.shape}")
     if data.size == 0:
-        raise ValueError(f"octree volumes need a non-empty array, got shape {data.shape}")
+        raise ValueError(f"{what} need a non-empty array, got shape {data.shape}")
     return data
 
 
@@ -352,11 +370,8 @@ def build_octree(data, *, spacing=1.0, origin=0.0, variance=0.0, iso_range=None,
     spacing <= 0 or non-finite, variance < 0, iso_range with a > b. A flat array (some
     n = 1) builds fine but has no cells: every child range is empty.
     """
-    raw = _validated(data)
-    spacing_v = _vector3(spacing, "spacing")
-    if not np.all(spacing_v > 0):
-        raise ValueError(f"spacing must be > 0, got {spacing}")
-    origin_v = _vector3(origin, "origin")
+    raw = validated(data)
+    spacing_v, origin_v = checked_geometry(spacing, origin)
     variance = float(variance)
     if not variance >= 0:
         raise ValueError(f"variance must be >= 0, got {variance}")

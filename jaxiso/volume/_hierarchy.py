@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 
 from . import _octree
+from ._build import checked_geometry, validated
 from ._lod import LevelOfDetail
 
 __all__ = ["OctreeCells", "GridCells", "holds_any"]
@@ -142,24 +143,44 @@ class MacrocellGrid:
     @staticmethod
     def from_array(data, *, spacing=1.0, origin=0.0, levels=(5, 3)):
         """Macrocell grids of widths 2^level cells (coarse first) over dense float32 data;
-        cells with a non-finite corner are empty, as in the octree."""
+        cells with a non-finite corner are empty, as in the octree.
+
+        data: a non-empty 3-D array of real numbers (TypeError for complex or other
+        dtypes). spacing, origin: finite scalars or 3-vectors, spacing > 0. levels: an int
+        or ints in [1, MAX_LEVEL]; duplicates are merged. Bad values raise ValueError."""
         import numpy as np
 
-        data = np.asarray(data, np.float32)
-        if data.ndim != 3 or data.size == 0:
-            raise ValueError(f"need a non-empty 3-D array, got shape {data.shape}")
-        levels = tuple(sorted({int(k) for k in levels}, reverse=True))
+        data = validated(data, "macrocell grids").astype(np.float32)
+        spacing, origin = checked_geometry(spacing, origin)
+        levels = _checked_levels(levels)
         lo, hi = _cell_ranges(data)
         ranges = []
         for k in levels:
             w = 1 << k
-            ranges.append((_block_reduce(lo, w, np.min, np.inf),
-                           _block_reduce(hi, w, np.max, -np.inf)))
-        spacing = np.broadcast_to(np.asarray(spacing, np.float32), (3,))
-        origin = np.broadcast_to(np.asarray(origin, np.float32), (3,))
+            ranges.append((_block_reduce(lo, w, np.minimum, np.inf),
+                           _block_reduce(hi, w, np.maximum, -np.inf)))
         return MacrocellGrid(jnp.asarray(data), tuple((jnp.asarray(a), jnp.asarray(b))
                                                       for a, b in ranges),
                              jnp.asarray(spacing), jnp.asarray(origin), levels)
+
+
+# Widest macrocell 2^MAX_LEVEL cells: as deep as the octree goes (`_build._MAX_DEPTH`), and
+# shifts of int32 voxel coordinates by more than 31 bits are undefined.
+MAX_LEVEL = 20
+
+
+def _checked_levels(levels) -> tuple:
+    """Distinct macrocell levels, coarse first, each an int in [1, MAX_LEVEL]."""
+    import numpy as np
+
+    arr = np.atleast_1d(np.asarray(levels))
+    if arr.ndim != 1 or (arr.size and arr.dtype.kind not in "iuf"):
+        raise TypeError(f"levels must be an int or a sequence of ints, got {levels!r}")
+    bad = [v for v in arr.tolist() if not (1 <= v <= MAX_LEVEL and v == int(v))]
+    if bad:
+        raise ValueError(f"levels must be ints in [1, {MAX_LEVEL}] (macrocells 2^level cells "
+                         f"wide), got {levels!r} (bad: {bad})")
+    return tuple(sorted({int(v) for v in arr.tolist()}, reverse=True))
 
 
 def _cell_ranges(data):
@@ -174,14 +195,20 @@ def _cell_ranges(data):
             np.where(finite, stack.max(axis=0), -np.inf))
 
 
-def _block_reduce(a, w, fn, fill):
+def _block_reduce(a, w, op, fill):
+    """ufunc `op` over blocks of w^3 entries of `a`: [ceil(n / w)] per axis (at least 1,
+    `fill` where an axis is empty). One axis at a time with `reduceat`, which never pads, so
+    a macrocell much wider than the volume costs no memory."""
     import numpy as np
 
-    shape = [max(-(-s // w), 1) for s in a.shape]
-    padded = np.full([s * w for s in shape], fill, np.float32)
-    padded[:a.shape[0], :a.shape[1], :a.shape[2]] = a
-    blocks = padded.reshape(shape[0], w, shape[1], w, shape[2], w)
-    return fn(blocks, axis=(1, 3, 5)).astype(np.float32)
+    for axis, n in enumerate(a.shape):
+        if n == 0:
+            shape = list(a.shape)
+            shape[axis] = 1
+            a = np.full(shape, fill, np.float32)
+        else:
+            a = op.reduceat(a, np.arange(0, n, w), axis=axis)
+    return a.astype(np.float32)
 
 
 @dataclasses.dataclass(frozen=True)

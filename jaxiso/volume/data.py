@@ -33,16 +33,22 @@ ISOVALUES = {
 
 
 def _shape3(n) -> tuple[int, int, int]:
-    shape = (int(n),) * 3 if np.ndim(n) == 0 else tuple(int(m) for m in n)
-    if len(shape) != 3 or min(shape) < 1:
+    """(nx, ny, nz) from an int or a 3-tuple of positive ints (2.5 or NaN is an error, not
+    silently truncated)."""
+    sizes = np.asarray(n)
+    if (sizes.dtype.kind not in "iuf" or sizes.shape not in ((), (3,))
+            or not np.all(np.isfinite(sizes)) or not np.all(sizes == np.round(sizes))
+            or np.any(sizes < 1)):
         raise ValueError(f"need an int or a 3-tuple of positive sizes, got {n!r}")
-    return shape
+    return tuple(int(m) for m in np.broadcast_to(sizes, (3,)))
 
 
 def box_geometry(shape, lo=0.0, hi=1.0) -> tuple[tuple, tuple]:
     """(spacing, origin), 3-tuples of floats, of a grid of `shape` nodes spanning [lo, hi]^3
     with nodes on both faces. An axis of size 1 gets spacing hi - lo (it has no cells)."""
     shape = _shape3(shape)
+    if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+        raise ValueError(f"need finite lo < hi, got lo={lo!r}, hi={hi!r}")
     spacing = tuple(float((hi - lo) / max(m - 1, 1)) for m in shape)
     return spacing, (float(lo),) * 3
 
@@ -194,7 +200,7 @@ def mixing(n=64, *, seed: int = 0, time: float = 0.0, quantize: bool = False) ->
     """
     shape = _shape3(n)
     time = float(time)
-    if time < 0:
+    if not time >= 0:  # NaN too
         raise ValueError(f"time must be >= 0, got {time}")
     x, y, z = _axes(shape, 0.0, 1.0)
     rng = np.random.default_rng(seed)  # draws depend on seed only, not on the grid
