@@ -311,19 +311,18 @@ def _check_depth(lo, hi, eps) -> None:
     """eps must be reachable: at most 2^MAX_DEPTH pieces per ray (int32 positions) and no
     finer than float32 resolves the box's coordinates."""
     length = float(np.linalg.norm(hi - lo))
-    if not np.isfinite(np.float32(length)):
+    if not length < float(np.finfo(np.float32).max):
         raise ValueError(f"the domain box diagonal {length:.3g} overflows float32; "
                          "scale the model down")
     finest = length * 2.0 ** -_bisect.MAX_DEPTH
-    if eps < finest:
-        raise ValueError(f"eps={eps:.3g} needs more than 2^{_bisect.MAX_DEPTH} bisection "
-                         f"pieces across the domain's diagonal {length:.3g}; use "
-                         f"eps >= {finest:.3g} or a smaller box")
     ulp = float(np.max(np.maximum(np.abs(lo), np.abs(hi)))) * 2.0**-23
-    if eps < ulp:
-        raise ValueError(f"eps={eps:.3g} is below float32 resolution ({ulp:.3g}) at the "
-                         f"domain's coordinates (up to {ulp * 2**23:.3g}); use eps >= "
-                         f"{ulp:.3g} or translate and scale the model nearer the origin")
+    if eps < max(finest, ulp):
+        why = (f"more than 2^{_bisect.MAX_DEPTH} bisection pieces across the domain's "
+               f"diagonal {length:.3g}" if finest >= ulp else
+               f"a piece below float32 resolution ({ulp:.3g}) at the domain's coordinates "
+               f"(up to {ulp * 2**23:.3g})")
+        raise ValueError(f"eps={eps:.3g} needs {why}; use eps >= {max(finest, ulp):.3g}, or "
+                         "a smaller box nearer the origin")
 
 
 def _check_static(scene) -> None:
