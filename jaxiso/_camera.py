@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._core import Rays
+from ._core import Rays, pytree_dataclass
 
 __all__ = ["Rays", "Camera"]
 
@@ -21,8 +21,7 @@ def _unit(v):
     return v / jnp.linalg.norm(v)
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@pytree_dataclass
 class Camera:
     """A pinhole (perspective) or orthographic camera.
 

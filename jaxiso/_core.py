@@ -35,7 +35,8 @@ def pytree_dataclass(cls):
     """A frozen dataclass registered as a pytree: fields made with `static_field` are
     metadata, the others children. Unflattening bypasses ``__init__`` (JAX rebuilds nodes
     with tracers and placeholders; validation belongs to user-facing construction)."""
-    cls = dataclasses.dataclass(frozen=True)(cls)
+    # eq=False: identity equality and hashing (array fields have no truth value)
+    cls = dataclasses.dataclass(frozen=True, eq=False)(cls)
     fields = dataclasses.fields(cls)
     data = tuple(f.name for f in fields if not f.metadata.get("static"))
     meta = tuple(f.name for f in fields if f.metadata.get("static"))

@@ -18,7 +18,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .._camera import Camera
-from .._core import Plan, Rays, concrete, facing
+from .._core import Plan, Rays, concrete, facing, pytree_dataclass
 from ._image import Image
 from ._plan import _check_scene, from_tiles, intersect_traced, plan_for, to_tiles
 
@@ -29,8 +29,7 @@ DEFAULT_COLORS = ((0.85, 0.55, 0.25), (0.30, 0.55, 0.85), (0.45, 0.75, 0.40),
                   (0.80, 0.35, 0.45), (0.65, 0.50, 0.80), (0.85, 0.80, 0.35))
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@pytree_dataclass
 class Light:
     """A directional light (`vector` points towards the light) or a point light at
     `vector` (`point=True`)."""
@@ -55,8 +54,7 @@ class Light:
             raise ValueError(f"Light color must be finite and >= 0, got {c}")
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@pytree_dataclass
 class Shading:
     """Phong material and effects (arrays are traced; counts are static).
 

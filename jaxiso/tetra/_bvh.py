@@ -44,7 +44,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxiso.tetra._mesh import TetMesh, check_renderable, corner_points, degenerate_mask
+from .._core import pytree_dataclass, static_field
+from ._mesh import TetMesh, check_renderable, corner_points, degenerate_mask
 
 __all__ = ["BVH", "build_bvh", "refit", "refit_jax", "memory_report", "bvh_stats",
            "right_first", "octant_of", "METHODS"]
@@ -54,12 +55,7 @@ MORTON_BITS = 10  # per axis: a 1024^3 grid over the centroids' bounding cube
 SAH_BINS = 16
 
 
-def _static(default=None):
-    return dataclasses.field(default=default, metadata=dict(static=True))
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True, eq=False)
+@pytree_dataclass
 class BVH:
     """An implicit BVH in flat pre-order arrays (layout in the module doc).
 
@@ -78,9 +74,9 @@ class BVH:
     order: np.ndarray
     depth: np.ndarray
     levels: np.ndarray
-    leaf_size: int = _static(8)
-    method: str = _static("bih")
-    level_sizes: tuple = _static(())
+    leaf_size: int = static_field(8)
+    method: str = static_field("bih")
+    level_sizes: tuple = static_field(())
 
     # views of the two node rows (numpy or jax arrays alike)
     @property

@@ -30,8 +30,9 @@ from __future__ import annotations
 import dataclasses
 import warnings
 
-import jax
 import numpy as np
+
+from .._core import pytree_dataclass
 
 __all__ = ["TetMesh", "tet_mesh", "from_meshio", "from_pyvista", "signed_volumes",
            "corner_points", "degenerate_mask", "check_renderable", "DEGENERATE_RTOL"]
@@ -43,8 +44,7 @@ DEGENERATE_RTOL = 1e-12
 VTK_TETRA = 10
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True, eq=False)
+@pytree_dataclass
 class TetMesh:
     """A tetrahedral mesh with S time steps of a per-vertex scalar field.
 

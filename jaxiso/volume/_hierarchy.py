@@ -11,6 +11,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
+from .._core import pytree_dataclass
 from . import _octree
 from ._build import checked_geometry, validated
 from ._lod import LevelOfDetail
@@ -111,8 +112,7 @@ class OctreeCells:
         return dict(trace=extra["trace"], start=start.astype(jnp.int32))
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@pytree_dataclass
 class MacrocellGrid:
     """Dense voxels with min/max macrocell grids (Parker et al., seed Sec. 3.5.1): the
     baseline the octree is measured against.

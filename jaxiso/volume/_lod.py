@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._core import pytree_dataclass
 from . import _octree
 
 __all__ = ["LevelOfDetail", "lod_for"]
@@ -30,8 +31,7 @@ __all__ = ["LevelOfDetail", "lod_for"]
 _CORNERS = np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)], np.int32)
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@pytree_dataclass
 class LevelOfDetail:
     """Pixel footprint model and quality knob.
 

@@ -28,12 +28,13 @@ coordinates outside the data give 0 (the seed's convention for voxels outside th
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from .._core import pytree_dataclass, static_field
 
 __all__ = ["OctreeVolume", "lookup", "lookup_trace", "neighbor_lookup", "lookup_coarse",
            "cell_corners", "child_range", "CORNER_OFFSETS"]
@@ -42,7 +43,7 @@ __all__ = ["OctreeVolume", "lookup", "lookup_trace", "neighbor_lookup", "lookup_
 CORNER_OFFSETS = np.array([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)], np.int32)
 
 
-@dataclasses.dataclass(frozen=True)
+@pytree_dataclass
 class OctreeVolume:
     """A min/max octree volume (see the module docstring for the exact format).
 
@@ -57,11 +58,11 @@ class OctreeVolume:
     caps: jax.Array  # [K, 8] stored dtype
     spacing: jax.Array  # [3] float32
     origin: jax.Array  # [3] float32
-    shape: tuple[int, int, int]
-    depth: int
-    multires: bool
+    shape: tuple[int, int, int] = static_field()
+    depth: int = static_field()
+    multires: bool = static_field()
     # itemsize of the array the user gave (for raw_nbytes); 0 means the stored dtype's
-    raw_itemsize: int = 0
+    raw_itemsize: int = static_field(0)
 
     @classmethod
     def from_array(cls, data, *, spacing=1.0, origin=0.0, variance=0.0, iso_range=None,
@@ -130,14 +131,6 @@ class OctreeVolume:
     def to_array(self) -> np.ndarray:
         """[nx, ny, nz] numpy reconstruction of the stored field (in the stored dtype)."""
         return _to_array(self)
-
-
-jax.tree_util.register_dataclass(
-    OctreeVolume,
-    data_fields=["child_start", "child_offset", "child_value", "child_min", "child_max",
-                 "caps", "spacing", "origin"],
-    meta_fields=["shape", "depth", "multires", "raw_itemsize"],
-)
 
 
 # ---------------------------------------------------------------- numpy reconstruction

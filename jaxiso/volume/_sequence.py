@@ -9,12 +9,11 @@ the footprint of the steps themselves.
 
 from __future__ import annotations
 
-import dataclasses
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._core import pytree_dataclass, static_field
 from ._octree import OctreeVolume
 
 __all__ = ["VolumeSequence"]
@@ -22,7 +21,7 @@ __all__ = ["VolumeSequence"]
 _STACKED = ("child_start", "child_offset", "child_value", "child_min", "child_max", "caps")
 
 
-@dataclasses.dataclass(frozen=True)
+@pytree_dataclass
 class VolumeSequence:
     """S octree volumes of one grid, stacked for traced step selection.
 
@@ -36,11 +35,11 @@ class VolumeSequence:
     stacked: dict
     spacing: jax.Array
     origin: jax.Array
-    shape: tuple
-    depth: int
-    multires: bool
-    raw_itemsize: int
-    volume_nbytes: tuple
+    shape: tuple = static_field()
+    depth: int = static_field()
+    multires: bool = static_field()
+    raw_itemsize: int = static_field()
+    volume_nbytes: tuple = static_field()
 
     @staticmethod
     def from_arrays(frames, *, progress=None, **build_options) -> VolumeSequence:
@@ -108,8 +107,3 @@ class VolumeSequence:
         return OctreeVolume(**arrays, spacing=self.spacing, origin=self.origin,
                             shape=self.shape, depth=self.depth, multires=self.multires,
                             raw_itemsize=self.raw_itemsize)
-
-
-jax.tree_util.register_dataclass(
-    VolumeSequence, data_fields=["stacked", "spacing", "origin"],
-    meta_fields=["shape", "depth", "multires", "raw_itemsize", "volume_nbytes"])
