@@ -333,8 +333,12 @@ isovalues (`f = 0` outside, `f = -4` inside; colours go by isovalue).
 
 ## Where next
 
-* `ji.intersect(scene, rays, method=...)`: `"k-bisection"`, `"mitchell"`, and the
-  non-inclusion baselines `"sampling"` and `"sphere"` (which miss thin features by design).
+* Every option is a scene field: `ji.intersect(scene.replace(method=...), rays)` with
+  `"k-bisection"`, `"mitchell"`, and the non-inclusion baselines `"sampling"` and
+  `"sphere"` (which miss thin features by design); traced fields (eps, isovalues, w,
+  params) never recompile.
+* `ji.plan_for(scene, n_rays)` shows the execution plan (tile edge, persistent lanes) that
+  `intersect` and `render` use; pass `plan=ji.Plan(...)` to choose another.
 * `ji.render(..., devices=jax.devices())` splits ray packets across devices.
 * Hits are differentiable (implicit function theorem) w.r.t. params, isovalues, `w` and
   the rays: see `examples/fit_superquadric.py`.
