@@ -20,7 +20,7 @@ import numpy as np
 __all__ = ["Rays", "Hits", "Plan", "Scene", "SceneFields", "pytree_dataclass", "static_field",
            "slab",
            "facing", "unit_or_facing", "attach_t", "miss_like", "concrete", "check_finite",
-           "check_choice"]
+           "check_choice", "cpu_lanes"]
 
 
 # -- the one pytree mechanism ---------------------------------------------------------
@@ -203,6 +203,19 @@ class Plan:
     @property
     def packet(self) -> int:
         return self.tile * self.tile
+
+
+# Persistent lanes pay off on the CPU from 2^16 rays for every traversal measured (Barth
+# sextic at 512^2: 1.60 vs 0.88 Mrays/s in 4x4 tiles; volumes and tets in
+# benchmarks/NOTES.md) but compile 2-6x longer, so smaller batches keep packets. Other
+# backends are unmeasured here (no GPU was lent) and keep packets.
+LANES = 4096
+LANES_FROM = 2**16
+
+
+def cpu_lanes(n_rays: int, backend: str) -> int | None:
+    """The lane count of a scene that gains from persistent lanes (None: packets)."""
+    return LANES if backend == "cpu" and n_rays >= LANES_FROM else None
 
 
 @typing.runtime_checkable

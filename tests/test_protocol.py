@@ -17,7 +17,8 @@ import pytest
 
 import jaxiso as ji
 from jaxiso.implicit import csg
-from jaxiso.tetra import TetIsosurface, data as tet_data, tet_mesh
+from jaxiso.tetra import TetIsosurface, tet_mesh
+from jaxiso.tetra import data as tet_data
 from jaxiso.volume import MacrocellGrid, OctreeVolume, VolumeIsosurface
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
@@ -65,6 +66,7 @@ def test_plan_is_shared_by_intersect_and_render():
     small, large = ji.plan_for(scene, 64 * 64, "cpu"), ji.plan_for(scene, 512 * 512, "cpu")
     assert small.lanes is None and large.lanes == 4096
     assert ji.plan_for(scene.replace(method="k-bisection"), 512 * 512, "cpu").lanes is None
+    assert ji.plan_for(ji.surfaces.scene("sesc.csg"), 512 * 512, "cpu").lanes is None
     rays = ji.surfaces.camera("barth_sextic", 32).rays()
     default = ji.intersect(scene, rays)
     for plan in (ji.Plan(tile=2), ji.Plan(tile=8), ji.Plan(tile=4, lanes=64)):

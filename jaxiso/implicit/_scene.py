@@ -22,6 +22,7 @@ from .._core import (
     attach_t,
     check_choice,
     concrete,
+    cpu_lanes,
     pytree_dataclass,
     static_field,
 )
@@ -47,19 +48,16 @@ ROUNDINGS = ("fast", "outward")
 
 # CPU packet edges from the packet table of benchmarks/bench_implicit.py on the 2-core CPU:
 # interval t-bisection was fastest in 4x4 tiles (Barth sextic 0.74 Mrays/s vs 0.57 in 8x8;
-# one vmap over the whole image 0.025), affine in 8x8. From 2^16 rays, t-bisection runs on
-# 4096 persistent lanes: at 512^2, interval 1.60 vs 0.88 Mrays/s in 4x4 tiles, affine 1.68
-# vs 0.41 in 8x8, at 4-6 s of compile against ~1-2 s. Other backends are unmeasured here
-# (no GPU was lent) and use 8x8 packets.
+# one vmap over the whole image 0.025), affine in 8x8. From 2^16 rays t-bisection runs on
+# persistent lanes (affine at 512^2: 1.68 vs 0.41 Mrays/s in 8x8 tiles); K-bisection and
+# the baselines have no lanes form. Other backends are unmeasured (8x8 packets).
 _CPU_TILES = {"interval": 4, "affine": 8}
-LANES = 4096
-LANES_FROM = 2**16
 
 
-def _plan(method, arithmetic, n_rays, backend, lanes_ok=True) -> Plan:
+def _plan(method, arithmetic, n_rays, backend) -> Plan:
     if backend != "cpu":
         return Plan(tile=8)
-    lanes = LANES if (lanes_ok and method == "t-bisection" and n_rays >= LANES_FROM) else None
+    lanes = cpu_lanes(n_rays, backend) if method == "t-bisection" else None
     return Plan(tile=_CPU_TILES[arithmetic], lanes=lanes)
 
 

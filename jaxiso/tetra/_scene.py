@@ -23,6 +23,7 @@ from .._core import (
     check_choice,
     check_finite,
     concrete,
+    cpu_lanes,
     pytree_dataclass,
     slab,
     static_field,
@@ -71,7 +72,7 @@ class TetIsosurface(SceneFields):
         spheres at 128^2: 4x4 0.21 / 1.61 s, 8x8 0.10 / 0.89 s, 16x16 0.11 / 0.32 s), and
         on the CPU 4096 persistent lanes from 2^16 rays (256^2: 0.27 vs 0.32 s for 10k
         tets, 0.27-0.34 vs 1.10 s for 664k; benchmarks/NOTES.md)."""
-        lanes = 4096 if backend == "cpu" and n_rays >= 2**16 else None
+        lanes = cpu_lanes(n_rays, backend)
         return Plan(tile=16, lanes=lanes)
 
     def __init__(self, mesh, isovalues, *, bvh="bih", leaf_size=8, clip_box=None,

@@ -20,6 +20,7 @@ from .._core import (
     check_choice,
     check_finite,
     concrete,
+    cpu_lanes,
     pytree_dataclass,
     slab,
     static_field,
@@ -135,7 +136,7 @@ class VolumeIsosurface(SceneFields):
         """8x8 packets (fastest in the packet table of bench_volume.py, 256^3 mixing layer
         at 256^2: 2x2 0.005, 4x4 0.008, 8x8 0.014, 16x16 0.012 Mrays/s); on the CPU,
         4096 persistent lanes from 2^16 rays (benchmarks/NOTES.md)."""
-        lanes = 4096 if backend == "cpu" and n_rays >= 2**16 else None
+        lanes = cpu_lanes(n_rays, backend)
         return Plan(tile=8, lanes=lanes)
 
     def with_lod(self, lod) -> VolumeIsosurface:
