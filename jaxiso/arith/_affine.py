@@ -22,11 +22,12 @@ accumulated error term. ``n = 1`` is the seed's float3 form (Algorithm 6).
 Empty results carry a NaN error term (and centre); an overflowed form whose centre became
 NaN but whose error term did not is the entire line, not empty. Unbounded forms have an
 infinite `err`.
+
+This module is the `aa` namespace: the type and conversions come from `_affine_type`.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 
 import jax
@@ -34,7 +35,24 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _interval as ia
-from ._interval import Interval, OperatorsMixin
+from ._affine_type import (  # noqa: F401 - re-exported: aa is the namespace
+    Affine,
+    _finite,
+    _flag,
+    _guard,
+    _guard_unbounded,
+    _interval_fallback,
+    _is_empty,
+    _lift,
+    _n_of,
+    _range,
+    _select,
+    as_affine,
+    from_interval,
+    radius,
+    to_interval,
+)
+from ._interval import Interval
 
 __all__ = [
     "Affine", "from_interval", "to_interval", "as_affine", "radius",
@@ -43,178 +61,6 @@ __all__ = [
     "ceil", "sign", "fmod", "minimum", "maximum", "clamp", "lt", "le", "gt", "ge", "eq",
     "ne", "select_n", "where", "widen",
 ]
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True, eq=False)
-class Affine(OperatorsMixin):
-    """A batch of AF1 affine forms (operators as for `Interval`).
-
-    Attributes:
-      center: [*S] central values.
-      dev: [*S, n] partial deviations, one per noise symbol (n is static).
-      err: [*S] non-negative accumulated error (the AF1 ``e_{n+1}`` term).
-      defined: [*S] bool, as for `Interval` (False where a domain part was dropped).
-    """
-
-    center: jax.Array
-    dev: jax.Array
-    err: jax.Array
-    defined: jax.Array = None
-
-    def __post_init__(self):
-        if self.defined is None:
-            object.__setattr__(self, "defined", jnp.ones(np.shape(self.center), bool))
-
-    __array_ufunc__ = None
-
-    @property
-    def n(self) -> int:
-        return int(np.shape(self.dev)[-1])
-
-    @property
-    def shape(self):
-        return np.shape(self.center)
-
-    def __getitem__(self, index):
-        s = self.shape
-        idx = index if isinstance(index, tuple) else (index,)
-        return Affine(jnp.broadcast_to(self.center, s)[index],
-                      jnp.broadcast_to(self.dev, s + (self.n,))[idx + (Ellipsis, slice(None))],
-                      jnp.broadcast_to(self.err, s)[index],
-                      jnp.broadcast_to(self.defined, s)[index])
-
-    def __repr__(self):
-        return (f"Affine(center={self.center!r}, dev={self.dev!r}, err={self.err!r}, "
-                f"defined={self.defined!r})")
-
-
-# ----------------------------------------------------------------------- conversion
-
-
-def _is_empty(x: Affine):
-    return jnp.isnan(x.err)
-
-
-def radius(x: Affine):
-    """rad(x) = sum |dev_i| + err (Eq. 6.10 with the AF1 error term)."""
-    return jnp.sum(jnp.abs(x.dev), axis=-1) + x.err
-
-
-def to_interval(x: Affine) -> Interval:
-    """Eq. 6.9: ``[center - rad, center + rad]``."""
-    r = radius(x)
-    lo, hi = x.center - r, x.center + r
-    # inf - inf from an overflowed form is not empty: only a NaN error term means empty
-    overflow = ~_is_empty(x)
-    lo = jnp.where(jnp.isnan(lo) & overflow, -jnp.inf, lo)
-    hi = jnp.where(jnp.isnan(hi) & overflow, jnp.inf, hi)
-    return Interval(lo, hi, x.defined)
-
-
-def _range(x: Affine) -> Interval:
-    """`to_interval` padded by an ulp of ``|center| + rad``: the range the rules work on.
-    Rounding ``center +- rad`` to nearest can cut into the set (far from 0 the centre
-    cannot even hold a small endpoint), so internal conversions always pad."""
-    iv = to_interval(x)
-    finfo = jnp.finfo(jnp.result_type(x.center))
-    pad = float(finfo.eps) * jnp.abs(x.center) + float(finfo.eps) * radius(x) + float(
-        finfo.tiny)  # two terms: their sum could overflow near the float32 maximum
-    # overflowed (NaN: iv is already entire) or an infinite point (exact): no pad
-    pad = jnp.where(jnp.isnan(x.center) | jnp.isinf(x.center), 0.0, pad)
-    return Interval(iv.lo - pad, iv.hi + pad, iv.defined)
-
-
-def from_interval(x, symbol: int | None = None, n: int = 1) -> Affine:
-    """Eq. 6.8: centre = midpoint, the radius on noise symbol `symbol` (or on the error
-    term when `symbol` is None). Unbounded radii always go to the error term."""
-    x = ia.as_interval(x)
-    c = ia.mid(x)
-    r = ia.rad(x)
-    # an overflowed point [inf, inf] stays that point (not the whole line): a box where
-    # x^500 overflows is rejected as in interval arithmetic
-    inf_point = (x.lo == x.hi) & jnp.isinf(x.lo)
-    c = jnp.where(inf_point, x.lo, c)
-    r = jnp.where(inf_point, 0.0, r)
-    finite = jnp.isfinite(r)
-    if symbol is None:
-        dev = jnp.zeros(np.shape(c) + (n,), c.dtype)
-        err = r
-    else:
-        if not 0 <= symbol < n:
-            raise ValueError(f"symbol {symbol} out of range for n={n} noise symbols")
-        onehot = jnp.zeros((n,), c.dtype).at[symbol].set(1.0)
-        dev = jnp.where(finite, r, 0.0)[..., None] * onehot
-        err = jnp.where(finite, 0.0, r)
-    return Affine(c, dev, err, x.defined)
-
-
-def as_affine(x, n: int) -> Affine:
-    """Affine unchanged; an Interval on the error term; an array as an exact point."""
-    if isinstance(x, Affine):
-        if x.n != n:
-            raise ValueError(f"mixing affine forms with {x.n} and {n} noise symbols")
-        return x
-    if isinstance(x, Interval):
-        return from_interval(x, None, n)
-    x = jnp.asarray(x)
-    if not jnp.issubdtype(x.dtype, jnp.floating):
-        x = x.astype(jnp.float32)
-    return Affine(x, jnp.zeros(x.shape + (n,), x.dtype), jnp.zeros_like(x))
-
-
-def _n_of(*xs) -> int:
-    for x in xs:
-        if isinstance(x, Affine):
-            return x.n
-    return 1
-
-
-def _lift(*xs):
-    n = _n_of(*xs)
-    return [as_affine(x, n) for x in xs]
-
-
-def _flag(*xs):
-    f = xs[0].defined
-    for x in xs[1:]:
-        f = f & x.defined
-    return f
-
-
-def _interval_fallback(iv: Interval, n: int) -> Affine:
-    """An Interval result as an affine form with no correlation (error term only)."""
-    return from_interval(iv, None, n)
-
-
-def _select(mask, a: Affine, b: Affine) -> Affine:
-    return Affine(jnp.where(mask, a.center, b.center),
-                  jnp.where(mask[..., None], a.dev, b.dev),
-                  jnp.where(mask, a.err, b.err),
-                  jnp.where(mask, a.defined, b.defined))
-
-
-def _finite(x: Affine):
-    # one reduction instead of three: the sum is finite iff every term is
-    return jnp.isfinite(x.center + x.err + jnp.sum(x.dev, axis=-1))
-
-
-def _guard(result: Affine, fallback_iv: Interval) -> Affine:
-    """Use the interval fallback wherever the affine result is not finite."""
-    return _select(_finite(result), result, _interval_fallback(fallback_iv, result.n))
-
-
-def _guard_unbounded(result: Affine, *inputs: Affine) -> Affine:
-    """Overflow (or inf * 0) in a polynomial operation: the entire line; results of empty
-    (NaN) inputs stay empty."""
-    empty = _is_empty(inputs[0])
-    for x in inputs[1:]:
-        empty = empty | _is_empty(x)
-    entire = Affine(jnp.zeros_like(result.center), jnp.zeros_like(result.dev),
-                    jnp.full_like(result.err, jnp.inf), result.defined)
-    out = _select(_finite(result) | empty, result, entire)
-    # 0 * (empty) must stay empty: the products above treat 0 * NaN as 0
-    return Affine(out.center, out.dev, jnp.where(empty, jnp.nan, out.err), out.defined)
 
 
 # ------------------------------------------------------------------ affine operations

@@ -19,7 +19,11 @@ from ..arith import Affine, Interval, aa, extend, ia
 
 
 def as_field(f, has_params: bool):
-    """``g(x, y, z, w, params)`` calling f with the arguments it declares."""
+    """``g(x, y, z, w, params)`` calling f with the arguments it declares.
+
+    g returns a float array of the coordinates' broadcast shape: a constant f (``1.0``,
+    ``jnp.float32(0)``) is broadcast, an integer value becomes float32, and a bool (an
+    inequality, which has no surface) raises TypeError when g is called."""
     try:
         sig = inspect.signature(f)
         kinds = (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
@@ -35,17 +39,38 @@ def as_field(f, has_params: bool):
         if has_params:
             raise TypeError("f takes (x, y, z) but params were given; declare "
                             "f(x, y, z, params) or f(x, y, z, w, params)")
-        return lambda x, y, z, w, params: f(x, y, z)
-    if n == 4:
-        if has_params:
-            return lambda x, y, z, w, params: f(x, y, z, params)
-        return lambda x, y, z, w, params: f(x, y, z, w)
-    if n == 5:
+        call = lambda x, y, z, w, params: f(x, y, z)  # noqa: E731
+    elif n == 4:
+        call = ((lambda x, y, z, w, params: f(x, y, z, params)) if has_params  # noqa: E731
+                else (lambda x, y, z, w, params: f(x, y, z, w)))
+    elif n == 5:
         if not has_params:
             raise TypeError("f takes (x, y, z, w, params) but no params were given")
-        return lambda x, y, z, w, params: f(x, y, z, w, params)
-    raise TypeError(f"f must take (x, y, z[, w][, params]); it takes {n} positional "
-                    "arguments")
+        call = f
+    else:
+        raise TypeError(f"f must take (x, y, z[, w][, params]); it takes {n} positional "
+                        "arguments")
+
+    def g(x, y, z, w, params):
+        return _real_value(call(x, y, z, w, params), x, y, z, w)
+
+    return g
+
+
+def _real_value(value, *coords):
+    """f's value as a float array broadcast with the coordinates (lifted values pass)."""
+    if isinstance(value, (Interval, Affine)):
+        return value
+    value = jnp.asarray(value)
+    if value.dtype == jnp.bool_ or not (jnp.issubdtype(value.dtype, jnp.floating)
+                                        or jnp.issubdtype(value.dtype, jnp.integer)):
+        raise TypeError(f"f must return a real number per point, got {value.dtype}; an "
+                        "inequality such as x*x + y*y < 1 has no surface: return the "
+                        "difference x*x + y*y - 1 instead")
+    if not jnp.issubdtype(value.dtype, jnp.floating):
+        value = value.astype(jnp.float32)
+    shape = jnp.broadcast_shapes(value.shape, *[jnp.shape(c) for c in coords])
+    return jnp.broadcast_to(value, shape)
 
 
 def ray_boxes(p, D, s0, s1, arithmetic: str):

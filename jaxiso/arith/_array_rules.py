@@ -1,0 +1,141 @@
+"""Rules of array-level primitives: data movement, casts, reductions, dot products, and
+library functions with a tighter rule than their jaxpr (hypot).
+
+Every rule comes as an interval and an affine variant: `extend` calls the affine one when
+some input is an `Affine`. Lifted values have batch shape S (per point of the `vmap`, the
+shape of the primitive's operand); the dev of an Affine has a trailing axis [n].
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from . import _affine as aa
+from . import _interval as ia
+from ._affine import Affine
+from ._interval import Interval
+from ._lift import is_lifted
+
+
+def move_data(prim, params, invals, operands: slice):
+    """Apply a primitive that only moves data (reshape, gather, concatenate, ...) to each
+    component of its data operands ``invals[operands]``; the rest (indices) must be
+    constants."""
+    data = invals[operands]
+    rest = invals[len(data):]
+    if any(is_lifted(r) for r in rest):
+        raise NotImplementedError(
+            f"jaxiso.extend: '{prim.name}' with a box-dependent index is not supported; "
+            "indices must not depend on x, y, z (use jnp.where/select instead)")
+    bind = lambda *xs: prim.bind(*xs, *rest, **params)  # noqa: E731
+    if any(isinstance(d, Affine) for d in data):
+        data = aa._lift(*data)
+        devs = jax.vmap(bind, in_axes=-1, out_axes=-1)(*[d.dev for d in data])
+        return Affine(bind(*[d.center for d in data]), devs, bind(*[d.err for d in data]),
+                      bind(*[d.defined for d in data]))
+    data = [ia.as_interval(d) for d in data]
+    return Interval(bind(*[d.lo for d in data]), bind(*[d.hi for d in data]),
+                    bind(*[jnp.broadcast_to(d.defined, jnp.shape(d.lo)) for d in data]))
+
+
+# ------------------------------------------------------------------------------ casts
+
+
+def convert_interval(x: Interval, *, new_dtype, **params) -> Interval:
+    """Monotone non-decreasing for float->float, bool->number, float->int (truncation)."""
+    cast = lambda v: lax.convert_element_type(v, new_dtype)  # noqa: E731
+    return Interval(cast(x.lo), cast(x.hi), x.defined)
+
+
+def convert_affine(x: Affine, *, new_dtype, **params):
+    """A precision change rounds centre + sum(dev e) as a whole, not term by term: go
+    through the (monotone) interval conversion; a cast to int gives an Interval."""
+    if jnp.dtype(new_dtype) == x.center.dtype:
+        return x
+    out = convert_interval(aa._range(x), new_dtype=new_dtype)
+    if jnp.issubdtype(new_dtype, jnp.floating):
+        return aa.from_interval(out, None, x.n)
+    return out
+
+
+# ------------------------------------------------------------------------- reductions
+
+
+def reduce_sum_interval(x: Interval, *, axes, **params) -> Interval:
+    axes = tuple(axes)
+    return Interval(jnp.sum(x.lo, axes), jnp.sum(x.hi, axes), jnp.all(x.defined, axes))
+
+
+def reduce_sum_affine(x: Affine, *, axes, **params) -> Affine:
+    axes = tuple(axes)
+    dev_axes = tuple(a if a >= 0 else a - 1 for a in axes)
+    return Affine(jnp.sum(x.center, axes), jnp.sum(x.dev, dev_axes), jnp.sum(x.err, axes),
+                  jnp.all(x.defined, axes))
+
+
+def reduce_monotone(reducer):
+    """(interval rule, affine rule) of a reduction monotone in every term (max, min);
+    the affine one works on the range (correlation not kept)."""
+
+    def interval_rule(x: Interval, *, axes, **params) -> Interval:
+        axes = tuple(axes)
+        return Interval(reducer(x.lo, axes), reducer(x.hi, axes), jnp.all(x.defined, axes))
+
+    def affine_rule(x: Affine, *, axes, **params) -> Affine:
+        return aa.from_interval(interval_rule(aa._range(x), axes=axes), None, x.n)
+
+    return interval_rule, affine_rule
+
+
+# ----------------------------------------------------------------------- dot products
+
+
+def _dot_operands(lhs, rhs, params):
+    """(box, const, dot) with ``dot(box, const)`` the primitive in the original order."""
+    if is_lifted(lhs) and is_lifted(rhs):
+        raise NotImplementedError(
+            "jaxiso.extend: dot_general/matmul between two box-dependent operands is not "
+            "supported; write the products out elementwise (x * y) instead")
+    if is_lifted(lhs):
+        return lhs, rhs, lambda b, c: lax.dot_general(b, c, **params)
+    return rhs, lhs, lambda b, c: lax.dot_general(c, b, **params)
+
+
+def _all_defined(dot, defined, const):
+    undefined = dot((~defined).astype(jnp.float32), jnp.ones_like(const, jnp.float32))
+    return undefined == 0
+
+
+def dot_interval(lhs, rhs, **params) -> Interval:
+    """Dot with one constant operand: exact mid-radius form ``A m +- |A| r``."""
+    box, const, dot = _dot_operands(lhs, rhs, params)
+    m, r = ia.mid(box), ia.rad(box)
+    big = jnp.finfo(m.dtype).max
+    center = dot(m, const)
+    radius = dot(jnp.minimum(r, big), jnp.abs(const))
+    unbounded = dot(jnp.isinf(r).astype(m.dtype), (const != 0).astype(m.dtype)) > 0
+    radius = jnp.where(unbounded, jnp.inf, radius)
+    return Interval(center - radius, center + radius, _all_defined(dot, box.defined, const))
+
+
+def dot_affine(lhs, rhs, **params) -> Affine:
+    """Dot with one constant operand: linear, so exact on centre and deviations."""
+    box, const, dot = _dot_operands(lhs, rhs, params)
+    devs = jax.vmap(lambda d: dot(d, const), in_axes=-1, out_axes=-1)(box.dev)
+    return Affine(dot(box.center, const), devs, dot(box.err, jnp.abs(const)),
+                  _all_defined(dot, box.defined, const))
+
+
+# ------------------------------------------------------------------ library functions
+
+
+def hypot_interval(x, y) -> Interval:
+    """jnp.hypot guards 0/0 with where(); its plain formula is the tight, sound rule."""
+    return ia.sqrt(ia.add(ia.square(ia.as_interval(x)), ia.square(ia.as_interval(y))))
+
+
+def hypot_affine(x, y) -> Affine:
+    x, y = aa._lift(x, y)
+    return aa.sqrt(aa.add(aa.square(x), aa.square(y)))
