@@ -103,15 +103,19 @@ class TimedBench:
 def user_call(call, plan, label, repeats, slow_s):
     """Times the call a user writes first (``ji.render(scene, cam)``,
     ``ji.intersect(scene, rays)``: no plan, no manual ``jax.jit``; both are jitted inside):
-    its first call compiles and runs (first_call_s), then the median of `repeats` calls as
-    `time_calls` does. `plan` is the plan that call runs (``ji.plan_for(scene, n)``).
+    its first call compiles (unless an earlier call of the same shapes did) and runs
+    (first_call_s); then `time_calls` (one more warm-up call, the median of `repeats`
+    calls, or that warm-up alone when it took longer than `slow_s`). `plan` is the plan
+    that call runs (``ji.plan_for(scene, n)``).
 
     Returns (the last output, row dict: call, plan, first_call_s, run_s, cpu_s,
-    repeats_used)."""
+    warmup_s, repeats_used)."""
+    t0 = now()
+    jax.block_until_ready(call())
+    first = now() - t0
     out, timing = time_calls(call, repeats, slow_s)
     return out, dict(call=label, plan=repr(plan), plan_tile=plan.tile, plan_lanes=plan.lanes,
-                     first_call_s=timing["warmup_s"], run_s=timing["run_s"],
-                     cpu_s=timing["cpu_s"], repeats_used=timing["repeats_used"])
+                     first_call_s=first, **timing)
 
 
 def plan_fields(plan):

@@ -65,6 +65,23 @@ def test_time_calls_counts_the_calls():
     assert (timing["repeats_used"], len(calls)) == (0, 1)
 
 
+def test_user_call_times_the_first_call_apart():
+    common = load_module(BENCHMARKS / "_common.py")
+    import jaxiso as ji
+
+    calls = []
+
+    def call():
+        calls.append(1)
+        return len(calls)
+
+    out, row = common.user_call(call, ji.Plan(tile=4, lanes=256), "f()", 3, slow_s=60.0)
+    assert (out, len(calls), row["repeats_used"]) == (5, 5, 3)  # first + warm-up + 3
+    assert row["call"] == "f()" and row["plan"] == "Plan(tile=4, lanes=256)"
+    assert (row["plan_tile"], row["plan_lanes"]) == (4, 256)
+    assert row["first_call_s"] >= 0 and row["run_s"] >= 0
+
+
 def test_run_keeps_the_other_sections_when_one_fails(tmp_path, capsys):
     common = load_module(BENCHMARKS / "_common.py")
     args = argparse.Namespace(out=str(tmp_path / "res"), repeats=1, slow_s=1.0, quick=True)
