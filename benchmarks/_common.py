@@ -1,7 +1,11 @@
 """Scaffolding shared by bench_implicit.py, bench_volume.py and bench_tetra.py: timing calls,
-AOT compile caching, the common command-line options, a run (header line, metadata,
-sections, the JSON file), table printing, the charts' matplotlib set-up and the peers'
-helpers (memory check, pixel subsample, VTK isosurface, open3d ray casting).
+AOT compile caching, timing the call a user writes (no plan, no manual jit), the common
+command-line options, a run (header line, metadata, sections, the JSON file), table
+printing, the charts' matplotlib set-up and the peers' helpers (memory check, pixel
+subsample, VTK isosurface, open3d ray casting).
+
+Only public jaxiso names are used here and in the benchmarks (DESIGN.md: benchmarks see
+the public API only).
 
 The benchmarks put this folder on ``sys.path`` and import it as ``_common``.
 """
@@ -25,7 +29,9 @@ import jaxiso as ji
 
 TIMING = ("compile: AOT lower+compile; run: median of `repeats` calls after one warm-up call "
           "(entries whose warm-up exceeds slow_s: the warm-up call), block_until_ready; "
-          "Mrays/s = pixels / run s")
+          "Mrays/s = pixels / run s; user calls (ji.render / ji.intersect with no plan and "
+          "no manual jax.jit): first_call_s = compile + first run, then run_s as above; "
+          "plan: the jaxiso.Plan each entry ran")
 
 
 def now():
@@ -88,6 +94,34 @@ class TimedBench:
     def timed(self, call, timed=True):
         """`time_calls` with this bench's repeats and slow_s: (output, timing dict)."""
         return time_calls(call, self.repeats, self.slow_s, timed)
+
+    def user_call(self, call, plan, label):
+        """`user_call` with this bench's repeats and slow_s: (output, row dict)."""
+        return user_call(call, plan, label, self.repeats, self.slow_s)
+
+
+def user_call(call, plan, label, repeats, slow_s):
+    """Times the call a user writes first (``ji.render(scene, cam)``,
+    ``ji.intersect(scene, rays)``: no plan, no manual ``jax.jit``; both are jitted inside):
+    its first call compiles (unless an earlier call of the same shapes did) and runs
+    (first_call_s); then `time_calls` (one more warm-up call, the median of `repeats`
+    calls, or that warm-up alone when it took longer than `slow_s`). `plan` is the plan
+    that call runs (``ji.plan_for(scene, n)``).
+
+    Returns (the last output, row dict: call, plan, first_call_s, run_s, cpu_s,
+    warmup_s, repeats_used)."""
+    t0 = now()
+    jax.block_until_ready(call())
+    first = now() - t0
+    out, timing = time_calls(call, repeats, slow_s)
+    return out, dict(call=label, plan=repr(plan), plan_tile=plan.tile, plan_lanes=plan.lanes,
+                     first_call_s=first, **timing)
+
+
+def plan_fields(plan):
+    """The plan a row ran, for its JSON: plan (the repr, e.g. "Plan(tile=4, lanes=4096)"),
+    tile and lanes."""
+    return dict(plan=repr(plan), tile=plan.tile, lanes=plan.lanes)
 
 
 # ---------------------------------------------------------------------------- command line

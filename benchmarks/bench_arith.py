@@ -92,7 +92,8 @@ def main(argv=None):
     rng = np.random.default_rng(0)
     rows = []
     print(f"jax {jax.__version__} on {device.device_kind} ({platform.processor() or 'cpu'}),"
-          f" batch {n} boxes, median of {args.repeats}")
+          f" batch {n} boxes, median of {args.repeats}; plan: none (flat batches of box "
+          f"evaluations, no rays)")
     hdr = (f"{'surface':<14}{'mode':<18}{'compile s':>10}{'run ms':>9}{'Mbox/s':>8}"
            f"{'width/true mean':>16}{'median':>8}{'hits 0':>8}")
     print(hdr)
@@ -127,7 +128,7 @@ def main(argv=None):
     result = dict(benchmark="arith", jax_version=jax.__version__, backend=jax.default_backend(),
                   device_kind=device.device_kind, platform=platform.platform(),
                   python=platform.python_version(), batch=n, repeats=args.repeats,
-                  tightness_boxes=args.tight_boxes, rows=rows,
+                  tightness_boxes=args.tight_boxes, plan=None, rows=rows,
                   box_edges="2^-uniform(2,10) of the domain edge")
     out_path = pathlib.Path(args.out) if args.out else (
         ROOT / "results" / f"arith_{jax.default_backend()}.json")

@@ -4,10 +4,16 @@ the seed's Tables 6.1 and 6.2, a packet-size table (seed Table 4.2) and an eps s
     python benchmarks/bench_implicit.py [--size 512] [--quick] [--repeats 3]
         [--only table61,table62,packets,sweep] [--names sphere,...] [--out benchmarks/results]
 
-Every entry runs ``jax.jit(ji.intersect)`` (the render path: rays in tile order, packets
-of tile x tile rays, hits with normals) on a catalogue camera. Compile time (AOT
-``lower().compile()``) is reported apart from run time: one warm-up call, then the
-median of `repeats` calls, each ``jax.block_until_ready``. Mrays/s = pixels / run s.
+Every entry runs ``ji.intersect(scene, rays, plan=plan)`` (the render path: rays in tile
+order, hits with normals) on a catalogue camera, with the options (eps, method,
+arithmetic, samples) as scene fields (``scene.replace``). The plan is the one a user gets
+(``ji.plan_for(scene, n_rays)``: packets of tile x tile rays, or persistent lanes) unless
+the entry says otherwise; every row records it (``plan``, e.g. "Plan(tile=4, lanes=None)").
+Compile time (AOT ``lower().compile()``) is reported apart from run time: one warm-up
+call, then the median of `repeats` calls, each ``jax.block_until_ready``. Mrays/s =
+pixels / run s. The packets section also times the calls a user writes first,
+``ji.intersect(scene, camera.rays())`` and ``ji.render(scene, camera)`` (no plan, no
+manual ``jax.jit``: first call = compile + run, then the median), beside the tuned plans.
 Work counters come from ``hits.steps`` (loop iterations per ray): mean / max, the hit
 fraction, the rays that exhausted ``max_steps``, the lane utilisation of a packet (the
 useful share of lane-iterations: sum of steps / sum over packets of packet x its
@@ -22,7 +28,8 @@ Sections:
   table62  t-bisection vs K-bisection vs Mitchell at eps 2^-11 and 2^-22 on the Mitchell
            and Barth decic surfaces, interval arithmetic.
   packets  Barth sextic, interval t-bisection, eps 2^-11: one vmap over all rays, square
-           tiles, and persistent lanes with refill.
+           tiles, and persistent lanes with refill (the whole image as one queue); and
+           the default calls (ji.intersect, ji.render) side by side.
   sweep    eps 2^-6..2^-16 on barth_sextic and mitchell for t-/K-bisection x interval /
            affine and Mitchell; point sampling with 16/64/256 samples. Pixel error
            (fraction of hit masks differing from the reference) and depth error
@@ -47,7 +54,6 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxiso as ji
-from jaxiso.render._scene import default_tile
 
 ROOT = pathlib.Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT))
@@ -66,8 +72,8 @@ SAMPLES = (16, 64, 256)
 AGREE = 0.995
 REF_EPS = 2.0**-22
 TARGET_MRAYS = 1.0
-RENDER_TILE = default_tile("interval")  # the render path's packet edge (interval)
-# bisection's default loop bound (jaxiso.implicit._scene.run_bisection)
+# bisection's default loop bound (ImplicitSurface.max_steps None: 256 x the depth bound 30,
+# 8 x that for K-bisection, which counts per packet)
 MAX_DEPTH = 30
 MAX_STEPS = {"t-bisection": 256 * MAX_DEPTH, "k-bisection": 8 * 256 * MAX_DEPTH}
 
@@ -95,8 +101,15 @@ def log2_label(eps):
 # ---------------------------------------------------------------------------- runner
 
 
+def surface_scene(name, eps=EPS_DEFAULT, method="t-bisection", arithmetic="interval",
+                  **extra):
+    """A catalogue scene with the benchmark's options as its fields."""
+    return ji.surfaces.scene(name).replace(eps=eps, method=method, arithmetic=arithmetic,
+                                           **extra)
+
+
 class Bench:
-    """Compiles and times ``jit(intersect)`` configurations; caches executables and the
+    """Compiles and times ``intersect`` configurations (AOT); caches executables and the
     float64 references."""
 
     def __init__(self, repeats: int, slow_s: float):
@@ -115,75 +128,84 @@ class Bench:
                                       ji.to_tiles(r.direction, tile))
         return self._rays[key]
 
-    def compiled(self, name, size, tile, method, arithmetic, packet, lanes, extra):
-        key = (name, size, tile, method, arithmetic, packet, lanes,
-               tuple(sorted(extra.items())))
+    def compiled(self, scene, name, size, plan, method, arithmetic, extra):
+        """(executable, compile s) of intersect(scene, tile-ordered rays, plan=plan), and
+        whether it was cached (eps is a traced field: one executable serves every eps)."""
+        key = (name, size, plan, method, arithmetic, tuple(sorted(extra.items())))
         if key in self._compiled:
             return self._compiled[key], True
-        opts = dict(method=method, arithmetic=arithmetic, packet=packet, **extra)
-        if lanes is not None:
-            opts["lanes"] = lanes
 
-        def fn(scene, rays, eps):
-            return ji.intersect(scene, rays, eps=eps, **opts)
+        def fn(scene, rays):
+            return ji.intersect(scene, rays, plan=plan)
 
-        scene = ji.surfaces.scene(name)
         t0 = time.perf_counter()
-        exe = jax.jit(fn).lower(scene, self.rays(name, size, tile),
-                                jnp.float32(EPS_DEFAULT)).compile()
+        exe = jax.jit(fn).lower(scene, self.rays(name, size, plan.tile)).compile()
         entry = (exe, time.perf_counter() - t0)
         self._compiled[key] = entry
         return entry, False
 
     def run(self, name, size, eps, *, method="t-bisection", arithmetic="interval",
-            tile=None, packet=None, lanes=None, timed=True, exec_size=None,
-            **extra):
+            plan=None, timed=True, exec_size=None, **extra):
         """One configuration: returns (row dict, image-ordered hit mask, image-ordered t).
 
+        plan: None, the user's plan (``ji.plan_for(scene, rays)``), or a `ji.Plan`.
         An entry whose warm-up call takes longer than `slow_s` is timed by that call
         alone (repeats_used 0). exec_size: run on the executable compiled for
         exec_size^2 rays (>= size^2): the size^2 camera rays followed by rays that miss
         the domain, so no new compile (for masks; the timing includes empty packets)."""
-        tile = default_tile(arithmetic) if tile is None else tile  # as render does
-        packet = tile * tile if packet is None else int(packet)
+        scene = surface_scene(name, eps, method, arithmetic, **extra)
         ex = size if exec_size is None else exec_size
-        (exe, compile_s), cached = self.compiled(name, ex, tile, method, arithmetic,
-                                                 packet, lanes, extra)
-        scene = ji.surfaces.scene(name)
+        plan = ji.plan_for(scene, ex * ex) if plan is None else plan
+        tile = plan.tile
+        (exe, compile_s), cached = self.compiled(scene, name, ex, plan, method, arithmetic,
+                                                 extra)
         rays = self.rays(name, size, tile)
         m = rays.origin.shape[0]
         if ex != size:
             rays = pad_rays(rays, self.rays(name, ex, tile).origin.shape[0], scene)
-        e = jnp.float32(eps)
-        hits, timing = common.time_calls(lambda: exe(scene, rays, e), self.repeats,
+        hits, timing = common.time_calls(lambda: exe(scene, rays), self.repeats,
                                          self.slow_s, timed)
         run_s = timing["run_s"] if timed else None
         hits = jax.tree_util.tree_map(lambda a: a[:m], hits)
         n = size * size
-        steps = np.asarray(hits.steps, np.int64)  # tile order, padded to whole tiles
-        hit = np.asarray(hits.hit)
-        # lane utilisation of vmapped t-bisection packets
-        util = None
-        if method == "t-bisection" and lanes is None:
-            n_pk = -(-m // packet)
-            pad = np.zeros(n_pk * packet - m, np.int64)
-            per = np.concatenate([steps, pad]).reshape(n_pk, packet)
-            lane_iters = float(np.sum(per.max(axis=1)) * packet)
-            util = float(steps.sum() / lane_iters) if lane_iters else None
-        max_steps = MAX_STEPS.get(method)
-        exhausted = int(np.sum(steps >= max_steps)) if max_steps else None
+        packet = rays.origin.shape[0] if plan.lanes else plan.packet
         row = dict(surface=name, method=method, arithmetic=arithmetic, eps=float(eps),
-                   size=size, tile=tile, packet=packet, lanes=lanes, **extra,
+                   size=size, **common.plan_fields(plan), packet=packet, **extra,
                    compile_s=compile_s, compile_cached=cached, run_s=run_s,
                    warmup_s=timing["warmup_s"], repeats_used=timing["repeats_used"],
                    mrays_per_s=(n / run_s / 1e6) if run_s else None,
-                   steps_mean=float(steps.mean()), steps_max=int(steps.max()),
-                   steps_total=int(steps.sum()), hit_fraction=float(hit.mean()),
-                   exhausted=exhausted, lane_utilisation=util,
-                   ns_per_step=(run_s / max(int(steps.sum()), 1) * 1e9) if run_s else None)
+                   **work(hits, method, packet if plan.lanes is None else None, run_s))
         h = np.asarray(ji.from_tiles(hits.hit, tile, size, size)).reshape(-1)
         t = np.asarray(ji.from_tiles(hits.t, tile, size, size), np.float64).reshape(-1)
         return row, h, t
+
+    def defaults(self, name, size):
+        """The calls a user writes first, timed as written (no plan, no manual jit):
+        ``ji.intersect(scene, camera.rays())`` (raster order, work counters as in `run`)
+        and ``ji.render(scene, camera)``; interval t-bisection at eps 2^-11."""
+        scene = surface_scene(name)
+        cam = ji.surfaces.camera(name, size)
+        rays = cam.rays()
+        n = size * size
+        plan = ji.plan_for(scene, n)
+        rows = []
+        hits, row = common.user_call(lambda: ji.intersect(scene, rays), plan,
+                                     "ji.intersect(scene, camera.rays())", self.repeats,
+                                     self.slow_s)
+        flat = jax.tree_util.tree_map(lambda a: a.reshape((n,) + a.shape[2:]), hits)
+        packet = n if plan.lanes else plan.packet
+        row.update(surface=name, method="t-bisection", arithmetic="interval",
+                   eps=EPS_DEFAULT, size=size, packet=packet, label="default: intersect",
+                   mrays_per_s=n / row["run_s"] / 1e6,
+                   **work(flat, "t-bisection", None if plan.lanes else packet, row["run_s"]))
+        rows.append(row)
+        _, row = common.user_call(lambda: ji.render(scene, cam), plan,
+                                  "ji.render(scene, camera)", self.repeats, self.slow_s)
+        row.update(surface=name, method="t-bisection", arithmetic="interval",
+                   eps=EPS_DEFAULT, size=size, label="default: render (with shading)",
+                   mrays_per_s=n / row["run_s"] / 1e6)
+        rows.append(row)
+        return rows
 
     def reference(self, name, size):
         """float64 reference (t [size^2], raster order) and the seconds it took."""
@@ -227,6 +249,28 @@ def pad_rays(rays, n, scene):
     return ji.Rays(jnp.concatenate([rays.origin, o]), jnp.concatenate([rays.direction, d]))
 
 
+def work(hits, method, packet, run_s):
+    """Work counters of hits [N] (steps in the order the rays ran): mean / max / total
+    steps, hit fraction, rays that exhausted max_steps, the lane utilisation of packets of
+    `packet` consecutive rays (t-bisection only; None for persistent lanes: packet None)
+    and ns per ray-step."""
+    steps = np.asarray(hits.steps, np.int64)
+    util = None
+    if method == "t-bisection" and packet is not None:
+        m = steps.size
+        n_pk = -(-m // packet)
+        pad = np.zeros(n_pk * packet - m, np.int64)
+        per = np.concatenate([steps, pad]).reshape(n_pk, packet)
+        lane_iters = float(np.sum(per.max(axis=1)) * packet)
+        util = float(steps.sum() / lane_iters) if lane_iters else None
+    max_steps = MAX_STEPS.get(method)
+    return dict(steps_mean=float(steps.mean()), steps_max=int(steps.max()),
+                steps_total=int(steps.sum()), hit_fraction=float(np.mean(hits.hit)),
+                exhausted=int(np.sum(steps >= max_steps)) if max_steps else None,
+                lane_utilisation=util,
+                ns_per_step=(run_s / max(int(steps.sum()), 1) * 1e9) if run_s else None)
+
+
 def accuracy(hit, t, t_ref):
     ref_hit = np.isfinite(t_ref)
     both = hit & ref_hit
@@ -240,9 +284,13 @@ def accuracy(hit, t, t_ref):
 
 
 def work_cells(r):
-    return [compile_cell(r), fmt(r["run_s"]), fmt(r["mrays_per_s"]), fmt(r["steps_mean"], ".1f"),
-            str(r["steps_max"]), fmt(r["hit_fraction"]), fmt(r["exhausted"], "d"),
-            fmt(r["lane_utilisation"], ".2f"), fmt(r["ns_per_step"], ".0f")]
+    """Table cells of a row; a user call's first call (compile + run) stands in the
+    compile column, marked '+'; a render has no work counters ('-')."""
+    first = compile_cell(r) if "compile_s" in r else fmt(r["first_call_s"], ".1f") + "+"
+    return [first, fmt(r["run_s"]), fmt(r["mrays_per_s"]), fmt(r.get("steps_mean"), ".1f"),
+            fmt(r.get("steps_max"), "d"), fmt(r.get("hit_fraction")),
+            fmt(r.get("exhausted"), "d"), fmt(r.get("lane_utilisation"), ".2f"),
+            fmt(r.get("ns_per_step"), ".0f")]
 
 
 WORK_HDR = ["compile s", "run s", "Mrays/s", "steps", "max", "hit", "exh", "util", "ns/step"]
@@ -254,9 +302,11 @@ WORK_HDR = ["compile s", "run s", "Mrays/s", "steps", "max", "hit", "exh", "util
 def table61(b, cfg):
     names = cfg["table61_names"]
     size, csize = cfg["size"], cfg["conv_size"]
-    tiles = {a: default_tile(a) for a in ARITHMETICS}
-    print(f"== Table 6.1 analog: t-bisection, eps 2^-11, {size}x{size}, tiles {tiles} "
-          f"(render defaults); converged eps (2^-6..2^-14, hit mask vs float64 "
+    user_plans = {a: ji.plan_for(surface_scene(names[0], arithmetic=a), size * size)
+                  for a in ARITHMETICS}
+    plans = {a: repr(plan) for a, plan in user_plans.items()}
+    print(f"== Table 6.1 analog: t-bisection, eps 2^-11, {size}x{size}, plans {plans} "
+          f"(ji.plan_for, as render); converged eps (2^-6..2^-14, hit mask vs float64 "
           f"reference eps 2^-22 on >= {AGREE:.1%} of pixels) at {csize}x{csize}")
     rows, summary, printed = [], [], []
     for name in names:
@@ -302,10 +352,11 @@ def table61(b, cfg):
             conv = (log2_label(s[f"converged_eps_{arith}"])
                     if s.get(f"converged_eps_{arith}") else
                     ("n/a" if "converged_note" in s else "none"))
-            printed.append([name, arith + (" <" if arith == faster else ""), *work_cells(r),
-                            conv, fmt(s["seed_fps"][{"interval": "gpu_ia",
+            printed.append([name, arith + (" <" if arith == faster else ""), r["plan"],
+                            *work_cells(r), conv, fmt(s["seed_fps"][{"interval": "gpu_ia",
                                                      "affine": "gpu_raa"}[arith]], "")])
-        print_table(["surface", "arith", *WORK_HDR, "conv eps", "seed GPU fps"], printed[-2:])
+        print_table(["surface", "arith", "plan", *WORK_HDR, "conv eps", "seed GPU fps"],
+                    printed[-2:])
     print("  '<' marks the faster arithmetic at 2^-11; '*' a compile reused; conv eps: "
           "2^-6 means 2^-6 or coarser, 'n/a' no reference (CSG), 'none' no eps down to "
           "2^-14 agrees; util: useful share of lane-iterations; exh: rays that exhausted "
@@ -316,7 +367,8 @@ def table61(b, cfg):
     faster = {s["surface"]: s["faster"] for s in summary}
     print(f"  faster arithmetic per surface: {faster}\n")
     return dict(size=size, conv_size=csize, eps=EPS_DEFAULT,
-                tile=tiles, conv_eps_grid=list(CONVERGED_EPS), agree_threshold=AGREE,
+                plan=plans, tile={a: plan.tile for a, plan in user_plans.items()},
+                conv_eps_grid=list(CONVERGED_EPS), agree_threshold=AGREE,
                 reference="tests/reference_trace64.first_roots (CSG: first_change when "
                           "available), eps 2^-22, 4096 samples",
                 rows=rows, summary=summary)
@@ -326,17 +378,18 @@ def table62(b, cfg):
     size = cfg["table62_size"]
     names = cfg["table62_names"]
     eps_list = cfg["table62_eps"]
-    print(f"== Table 6.2 analog: interval arithmetic, {size}x{size}, tile "
-          f"{RENDER_TILE}x{RENDER_TILE}")
+    print(f"== Table 6.2 analog: interval arithmetic, {size}x{size}, the plan ji.plan_for "
+          f"gives each method")
     rows, printed = [], []
     for name in names:
         for eps in eps_list:
             for method in ("t-bisection", "k-bisection", "mitchell"):
                 row, _, _ = b.run(name, size, eps, method=method)
                 rows.append(row)
-                printed.append([name, log2_label(eps), method, *work_cells(row)])
-    print_table(["surface", "eps", "method", *WORK_HDR], printed)
-    return dict(size=size, tile=RENDER_TILE, arithmetic="interval", rows=rows,
+                printed.append([name, log2_label(eps), method, row["plan"], *work_cells(row)])
+    print_table(["surface", "eps", "method", "plan", *WORK_HDR], printed)
+    return dict(size=size, plan={r["method"]: r["plan"] for r in rows},
+                arithmetic="interval", rows=rows,
                 seed_cpu_fps=SEED_TABLE62)
 
 
@@ -344,28 +397,33 @@ def packets(b, cfg):
     size = cfg["size"]
     n = size * size
     name = "barth_sextic"
-    print(f"== Packets: {name}, interval t-bisection, eps 2^-11, {size}x{size}")
-    configs = [dict(label="vmap all rays", tile=RENDER_TILE, packet=n)]
-    configs += [dict(label=f"tiles {t}x{t}", tile=t) for t in cfg["tiles"]]
-    for lanes in cfg["lanes"]:
-        for pk in (n, 16384):
-            if pk > n or (pk == 16384 and pk == n):
-                continue
-            configs.append(dict(label=f"lanes {lanes}, packet "
-                                      f"{'all' if pk == n else pk}",
-                                tile=RENDER_TILE, packet=pk, lanes=lanes))
+    user_plan = ji.plan_for(surface_scene(name), n)
+    print(f"== Packets: {name}, interval t-bisection, eps 2^-11, {size}x{size}; the user's "
+          f"plan (ji.plan_for) is {user_plan!r}")
+    # one packet of all rays: a tile as large as the image (tile order = raster order)
+    configs = [("vmap all rays", ji.Plan(tile=size))]
+    configs += [(f"tiles {t}x{t}", ji.Plan(tile=t)) for t in cfg["tiles"]]
+    # persistent lanes run the whole batch as one queue, in the user plan's tile order
+    configs += [(f"lanes {lanes}", ji.Plan(tile=user_plan.tile, lanes=lanes))
+                for lanes in cfg["lanes"]]
     rows, printed = [], []
-    for c in configs:
-        label = c.pop("label")
-        row, _, _ = b.run(name, size, EPS_DEFAULT, **c)
+    for label, plan in configs:
+        row, _, _ = b.run(name, size, EPS_DEFAULT, plan=plan)
         row["label"] = label
         rows.append(row)
-        printed.append([label, *work_cells(row)])
-    print_table(["configuration", *WORK_HDR], printed)
+        printed.append([label, row["plan"], *work_cells(row)])
+    defaults = b.defaults(name, size)
+    for d in defaults:
+        printed.append([d["label"], d["plan"], *work_cells(d)])
+    print_table(["configuration", "plan", *WORK_HDR], printed)
     best = max(rows, key=lambda r: r["mrays_per_s"])
-    print(f"  fastest: {best['label']} ({best['mrays_per_s']:.3f} Mrays/s)\n")
+    print(f"  fastest: {best['label']} ({best['mrays_per_s']:.3f} Mrays/s); the user's "
+          + "; ".join(f"{d['call']}: {d['mrays_per_s']:.3f} Mrays/s (first call "
+                      f"{d['first_call_s']:.1f} s)" for d in defaults)
+          + "\n  (default rows: no plan, no manual jit; '+': their first call, compile + "
+          "run)\n")
     return dict(surface=name, size=size, eps=EPS_DEFAULT, arithmetic="interval", rows=rows,
-                fastest=best["label"])
+                fastest=best["label"], user_plan=repr(user_plan), defaults=defaults)
 
 
 def sweep(b, cfg):
@@ -417,14 +475,15 @@ def target(b, cfg, result):
                 cands.append(r)
     if not cands:
         return None
+    defaults = result.get("packets", {}).get("defaults")
     if "packets" in result and "table61" in result:
         t61 = {r["arithmetic"]: r for r in result["table61"]["rows"]
                if r["surface"] == "barth_sextic"}
         best_pk = max(result["packets"]["rows"], key=lambda r: r["mrays_per_s"])
         if not cfg["quick"] and t61:
+            plan = ji.Plan(tile=best_pk["tile"], lanes=best_pk["lanes"])
             row, _, _ = b.run("barth_sextic", size, EPS_DEFAULT, arithmetic="affine",
-                              tile=best_pk["tile"], packet=best_pk["packet"],
-                              lanes=best_pk["lanes"])
+                              plan=plan)
             row["label"] = "affine, " + best_pk.get("label", "")
             cands.append(row)
             notes.append(f"  affine in the fastest packet configuration ({best_pk['label']}): "
@@ -442,13 +501,14 @@ def target(b, cfg, result):
                   steps_needed_per_s_for_target=TARGET_MRAYS * 1e6 * best["steps_mean"],
                   steps_per_s_measured=steps / best["run_s"],
                   batch_ns_per_box=arith_ns_per_box(best["arithmetic"]))
-    desc = (f"{best['method']}/{best['arithmetic']}, tile {best['tile']}, packet "
-            f"{best['packet']}, lanes {best['lanes']}")
+    desc = f"{best['method']}/{best['arithmetic']}, {best['plan']}"
     print(f"== Target: >= {TARGET_MRAYS} Mray/s on barth_sextic at eps 2^-11, {size}x{size}: "
           f"best {best['mrays_per_s']:.3f} Mrays/s ({desc}) -> "
           f"{'MET' if met else 'NOT met'}")
     for line in notes:
         print(line)
+    for d in defaults or ():
+        print(f"  the user's call {d['call']} ({d['plan']}): {d['mrays_per_s']:.3f} Mrays/s")
     if not met:
         print(f"  limits: {best['steps_mean']:.1f} steps/ray (max {best['steps_max']}), "
               + (f"{limits['idle_lane_fraction']:.2f} of lane-iterations idle, "
@@ -465,10 +525,10 @@ def target(b, cfg, result):
     print()
     return dict(goal_mrays_per_s=TARGET_MRAYS, size=size, met=met, best=best,
                 candidates=[dict(label=r.get("label"), method=r["method"],
-                                 arithmetic=r["arithmetic"], tile=r["tile"],
+                                 arithmetic=r["arithmetic"], plan=r["plan"], tile=r["tile"],
                                  packet=r["packet"], lanes=r["lanes"],
                                  mrays_per_s=r["mrays_per_s"]) for r in cands],
-                best_config=desc, limits=limits)
+                best_config=desc, best_plan=best["plan"], defaults=defaults, limits=limits)
 
 
 def arith_ns_per_box(arithmetic, surface="barth_sextic"):

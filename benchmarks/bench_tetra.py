@@ -6,12 +6,15 @@ under replication, traversal work, rendering modalities, time-varying data, a pe
         [--only table51,table53,table54,modalities,timevarying,peers,accuracy]
         [--out benchmarks/results]
 
-Images run ``jax.jit(ji.render)`` as the renderer chooses (from 2^16 rays on 4096
-persistent lanes on the CPU, else in tiles; rows say which), ray casts
-``jax.jit(ji.intersect)`` in tile-ordered packets of PACKET_TILE^2 rays. Compile time (AOT
-``lower().compile()``) is reported apart from run time: one warm-up call, then the median
-of `repeats` calls, each ``jax.block_until_ready``; an entry whose warm-up call takes longer
-than `slow_s` is timed by that call alone (repeats_used 0). Mrays/s = pixels / run s.
+Images run ``ji.render`` and ray casts ``ji.intersect`` (rays in tile order) with the plan
+a user gets, ``ji.plan_for(scene, n_rays)`` (tiles, or from 2^16 rays on the CPU the
+whole image on 4096 persistent lanes); every row records it (``plan``, e.g.
+"Plan(tile=16, lanes=None)"). Compile time (AOT ``lower().compile()``) is reported apart
+from run time: one warm-up call, then the median of `repeats` calls, each
+``jax.block_until_ready``; an entry whose warm-up call takes longer than `slow_s` is timed
+by that call alone (repeats_used 0). Mrays/s = pixels / run s. table51 also times each
+image as a user asks for it, ``ji.render(scene, camera)`` with no plan and no manual
+``jax.jit`` (first call = compile + run, then the median), beside the AOT figure.
 Timed rows also carry cpu_s, the process's CPU seconds over the same calls: on a CPU
 shared with other work it is steadier than wall time, so ratios are given in both.
 Scenes are put on the device once (``jax.device_put``) before they are timed. BVH builds
@@ -28,7 +31,8 @@ Sections:
                all copies; build, nodes, render; checks the target (render time grows at
                most 4x for 64x more tets).
   table54      traversal work per ray (seed Table 5.4) on the table51 meshes, from
-               ``jaxiso.tetra._traverse.traverse``: nodes visited and leaves intersected;
+               ``jaxiso.tetra.traverse`` run as ``intersect`` runs it (same plan): nodes
+               visited and leaves intersected;
                leaves x leaf_size bounds the ray-tet (isopolygon) tests from above,
                leaves x the mean leaf size estimates them. Two views: the others' and
                its opposite (the traversal takes the near child first by the ray's
@@ -68,8 +72,6 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxiso as ji
-from jaxiso.render._render import LANES, _use_lanes
-from jaxiso.render._scene import default_tile
 from jaxiso.tetra import (
     TetIsosurface,
     build_bvh,
@@ -78,8 +80,8 @@ from jaxiso.tetra import (
     memory_report,
     refit,
     tet_mesh,
+    traverse,
 )
-from jaxiso.tetra._traverse import traverse
 
 ROOT = pathlib.Path(__file__).resolve().parent
 TETRA_SOURCES = ROOT.parent / "jaxiso" / "tetra"
@@ -92,7 +94,6 @@ from _common import compile_cell, fmt, now, print_table, subsample  # noqa: E402
 SECTIONS = ("table51", "table53", "table54", "modalities", "timevarying", "peers",
             "accuracy")
 METHODS = ("bih", "sah")
-PACKET_TILE = default_tile()  # packet edge of the ray casts (intersect, traversal counts)
 PLAIN = ji.Shading()
 # Fields and isovalues. The wave's isovalue is off 0 because sin(k pi x) is exactly 0 on
 # many grid vertices, which would make the benchmark a test of ties.
@@ -148,15 +149,12 @@ def camera(v, size):
     return ji.Camera.look_at(v["eye"], v["target"], v["up"], v["fov"], size, size)
 
 
-def render_mode(scene, n_rays):
-    """How `ji.render` runs n_rays of `scene` (the renderer's own choice): "lanes 4096" or
-    "tile E"."""
-    if _use_lanes(scene, None, n_rays):
-        return f"lanes {LANES}"
-    return f"tile {scene.preferred_tile}"
+def render_mode(plan):
+    """A plan in words: "lanes 4096" or "tile E"."""
+    return f"lanes {plan.lanes}" if plan.lanes else f"tile {plan.tile}"
 
 
-def work_rays(direction, size, tile=PACKET_TILE):
+def work_rays(direction, size, tile):
     """Tile-ordered camera rays (o, d) [size^2, 3] framing the unit cube from `direction`."""
     r = camera(view((0, 0, 0), (1, 1, 1), direction), size).rays()
     return ji.to_tiles(r.origin, tile), ji.to_tiles(r.direction, tile)
@@ -224,9 +222,11 @@ def clip_range(o, d, lo, hi):
     return jnp.maximum(jnp.max(near, axis=-1), 0.0), jnp.min(far, axis=-1)
 
 
-def traverse_counts(scene, o, d, packet):
-    """hit, nodes visited, leaves intersected [N] of rays o, d [N, 3] (N a multiple of
-    `packet`) from the BVH traversal itself, packet by packet as `intersect` runs it."""
+def traverse_counts(scene, o, d, plan):
+    """hit, nodes visited, leaves intersected [N] of rays o, d [N, 3] from the BVH
+    traversal itself, run as `intersect` runs it with `plan`: packets of plan.tile**2
+    consecutive rays (N a multiple of it), or the whole batch on plan.lanes persistent
+    lanes."""
     n = o.shape[0]
     t_lo, t_hi = clip_range(o, d, scene.clip_lo, scene.clip_hi)
     points = jnp.asarray(scene.mesh.points)
@@ -236,9 +236,13 @@ def traverse_counts(scene, o, d, packet):
     def one(args):
         po, pd, a, b = args
         _, hit, _, _, nodes, leaves = traverse(scene.bvh, points, tets, values,
-                                               scene.isovalues, po, pd, a, b)
+                                               scene.isovalues, po, pd, a, b,
+                                               max_steps=scene.max_steps, lanes=plan.lanes)
         return hit, nodes, leaves
 
+    if plan.lanes:
+        return one((o, d, t_lo, t_hi))
+    packet = plan.packet
     packets = [x.reshape((n // packet, packet) + x.shape[1:]) for x in (o, d, t_lo, t_hi)]
     return tuple(x.reshape(n) for x in jax.lax.map(one, packets))
 
@@ -266,6 +270,7 @@ class Bench(common.TimedBench):
         self.build_repeats = build_repeats
         self._meshes = {}
         self._bvhs = {}
+        self._rays = {}
 
     # -- data
     def mesh(self, n, field):
@@ -297,39 +302,65 @@ class Bench(common.TimedBench):
     # -- compile and time
     def render_exe(self, scene, cam, shading):
         """compiled(...) of jit(render) with a constant `shading` (a module constant: the
-        executables are cached by its id)."""
-        return self.compiled(("render", id(shading)),
-                             lambda s, c: ji.render(s, c, shading=shading), scene, cam)
+        executables are cached by its id) and the user's plan, and that plan."""
+        plan = ji.plan_for(scene, cam.width * cam.height)
+        exe, compile_s, cached = self.compiled(
+            ("render", plan, id(shading)),
+            lambda s, c: ji.render(s, c, shading=shading, plan=plan), scene, cam)
+        return exe, compile_s, cached, plan
 
     def render(self, scene, cam, shading=PLAIN):
         """jit(render) of a device scene: row dict (no image kept)."""
-        exe, compile_s, cached = self.render_exe(scene, cam, shading)
+        exe, compile_s, cached, plan = self.render_exe(scene, cam, shading)
         _, timing = self.timed(lambda: exe(scene, cam))
         n = cam.width * cam.height
-        return dict(pixels=n, mode=render_mode(scene, n), compile_s=compile_s,
+        return dict(pixels=n, plan=repr(plan), mode=render_mode(plan), compile_s=compile_s,
                     compile_cached=cached,
                     **timing, mrays_per_s=n / timing["run_s"] / 1e6)
 
-    def counts(self, scene, o, d, size, tile=PACKET_TILE):
-        """`traverse_counts` of tile-ordered rays o, d: (info dict: compile and timing,
-        hit, nodes, leaves [size^2] in raster order)."""
+    def user_render(self, scene, cam):
+        """``ji.render(scene, camera)`` as a user calls it (no plan, no manual jit):
+        {call, plan, first_call_s (compile + run), run_s, cpu_s, repeats_used,
+        mrays_per_s}."""
+        n = cam.width * cam.height
+        _, row = self.user_call(lambda: ji.render(scene, cam), ji.plan_for(scene, n),
+                                "ji.render(scene, camera)")
+        row["mrays_per_s"] = n / row["run_s"] / 1e6
+        return row
+
+    def work_rays(self, scene, direction, size):
+        """(plan, o, d): the user's plan for size^2 rays of `scene` and tile-ordered
+        camera rays for it (`work_rays`), cached by tile."""
+        plan = ji.plan_for(scene, size * size)
+        key = ("work_rays", direction, size, plan.tile)
+        if key not in self._rays:
+            self._rays[key] = work_rays(direction, size, plan.tile)
+        return (plan, *self._rays[key])
+
+    def counts(self, scene, direction, size):
+        """`traverse_counts` of size^2 camera rays from `direction` with the user's plan:
+        (info dict: plan, compile and timing, hit, nodes, leaves [size^2] in raster
+        order)."""
+        plan, o, d = self.work_rays(scene, direction, size)
         exe, compile_s, cached = self.compiled(
-            "traverse", lambda s, a, c: traverse_counts(s, a, c, tile * tile), scene, o, d)
+            ("traverse", plan), lambda s, a, c: traverse_counts(s, a, c, plan), scene, o, d)
         out, timing = self.timed(lambda: exe(scene, o, d))
-        hit, nodes, leaves = (raster_order(x, size, tile) for x in out)
-        return (dict(compile_s=compile_s, compile_cached=cached, **timing), hit,
-                nodes.astype(np.int64), leaves.astype(np.int64))
+        hit, nodes, leaves = (raster_order(x, size, plan.tile) for x in out)
+        return (dict(**common.plan_fields(plan), compile_s=compile_s, compile_cached=cached,
+                     **timing), hit, nodes.astype(np.int64), leaves.astype(np.int64))
 
     def intersect(self, scene, o, d, size):
-        """jit(intersect) of rays o, d [size^2, 3] (raster order, run in tile order):
-        (row, hit [size^2], t [size^2] float64)."""
-        tile = PACKET_TILE
+        """jit(intersect) of rays o, d [size^2, 3] (raster order, run in tile order) with
+        the user's plan: (row, hit [size^2], t [size^2] float64)."""
+        plan = ji.plan_for(scene, size * size)
+        tile = plan.tile
         rays = ji.Rays(tile_order(o, size, tile), tile_order(d, size, tile))
         exe, compile_s, cached = self.compiled(
-            "intersect", lambda s, r: ji.intersect(s, r, packet=tile * tile), scene, rays)
+            ("intersect", plan), lambda s, r: ji.intersect(s, r, plan=plan), scene, rays)
         hits, timing = self.timed(lambda: exe(scene, rays))
-        row = dict(pixels=size * size, compile_s=compile_s, compile_cached=cached,
-                   **timing, mrays_per_s=size * size / timing["run_s"] / 1e6)
+        row = dict(pixels=size * size, plan=repr(plan), compile_s=compile_s,
+                   compile_cached=cached, **timing,
+                   mrays_per_s=size * size / timing["run_s"] / 1e6)
         return (row, raster_order(hits.hit, size, tile),
                 raster_order(hits.t, size, tile).astype(np.float64))
 
@@ -375,16 +406,23 @@ def table51(b, cfg):
                        bvh_bytes=mem["bvh_bytes"], mesh_bytes=mem["mesh_bytes"],
                        overhead_pct=mem["overhead_pct"], size=size,
                        **b.render(scene, cam))
+            # the same image as a user asks for it (no plan, no manual jit)
+            row["user_call"] = b.user_render(scene, cam)
+            row["user_run_s"] = row["user_call"]["run_s"]
             rows.append(row)
             print(f"  n={n} {method} done", flush=True)
     print_table(["n", "tets", "method", "build ms", "nodes", "depth", "leaf", "BVH MB",
-                 "+% mesh", "compile s", "render s", "cpu s", "Mrays/s"],
+                 "+% mesh", "plan", "compile s", "render s", "cpu s", "Mrays/s",
+                 "user 1st s", "user s"],
                 [[str(r["n"]), str(r["tets"]), r["method"], fmt(r["build_ms"], ".0f"),
                   str(r["nodes"]), str(r["depth"]), fmt(r["mean_leaf_size"], ".2f"),
                   fmt(r["bvh_bytes"] / 2**20, ".1f"), fmt(r["overhead_pct"], ".0f"),
-                  compile_cell(r), fmt(r["run_s"]), fmt(r["cpu_s"], ".2f"),
-                  fmt(r["mrays_per_s"], ".4f")]
+                  r["plan"], compile_cell(r), fmt(r["run_s"]), fmt(r["cpu_s"], ".2f"),
+                  fmt(r["mrays_per_s"], ".4f"), fmt(r["user_call"]["first_call_s"], ".1f"),
+                  fmt(r["user_run_s"])]
                  for r in rows])
+    print("  user: ji.render(scene, camera) as a user calls it (no plan, no manual jit): its "
+          "first call (compile + run) and the median after")
     largest = max((r for r in rows if r["method"] == "bih"), key=lambda r: r["tets"])
     checked = largest["tets"] >= BUILD_TARGET_TETS
     met = largest["build_ms"] < 1e3 * BUILD_TARGET_S if checked else None
@@ -464,11 +502,10 @@ def table53(b, cfg):
 
 def table54(b, cfg):
     size, field = cfg["work_size"], cfg["t51_field"]
-    tile = PACKET_TILE
     print(f"== Table 5.4 analog: traversal work per ray, {field} field, {size}x{size} rays "
-          f"in {tile}x{tile} packets; tet tests <= leaves x leaf size. Views: "
+          f"run as intersect runs them (the user's plan, ji.plan_for); tet tests <= leaves "
+          f"x leaf size. Views: "
           + "; ".join(f"{k}: eye at {v[0]}" for k, v in WORK_VIEWS.items()))
-    rays = {name: work_rays(direction, size) for name, (direction, _) in WORK_VIEWS.items()}
     rows = []
     for n in cfg["t51_n"]:
         mesh, iso, _ = b.mesh(n, field)
@@ -476,8 +513,8 @@ def table54(b, cfg):
             bvh, _, _ = b.build(mesh, method, key=(n, field))
             scene = on_device(TetIsosurface(mesh, iso, bvh=bvh))
             stats = bvh_stats(bvh)
-            for name, (o, d) in rays.items():
-                info, hit, nodes, leaves = b.counts(scene, o, d, size)
+            for name, (direction, _) in WORK_VIEWS.items():
+                info, hit, nodes, leaves = b.counts(scene, direction, size)
                 rows.append(dict(
                     n=n, tets=mesh.n_tets, method=method, view=name, size=size, **info,
                     hit_fraction=float(hit.mean()),
@@ -490,10 +527,10 @@ def table54(b, cfg):
                     tet_tests_est_mean=float(leaves.mean() * stats["mean_leaf_size"]),
                     isovalues=1))
             print(f"  n={n} {method} done", flush=True)
-    print_table(["n", "tets", "method", "view", "hit", "nodes", "max", "nodes|hit",
+    print_table(["n", "tets", "method", "view", "plan", "hit", "nodes", "max", "nodes|hit",
                  "nodes|miss", "leaves", "max", "tet tests <=", "~tet tests", "compile s",
                  "run s"],
-                [[str(r["n"]), str(r["tets"]), r["method"], r["view"],
+                [[str(r["n"]), str(r["tets"]), r["method"], r["view"], r["plan"],
                   fmt(r["hit_fraction"], ".2f"), fmt(r["nodes_mean"], ".1f"),
                   str(r["nodes_max"]), fmt(r["nodes_mean_hit"], ".1f"),
                   fmt(r["nodes_mean_miss"], ".1f"), fmt(r["leaves_mean"], ".2f"),
@@ -503,7 +540,7 @@ def table54(b, cfg):
     for name, (_, meaning) in WORK_VIEWS.items():
         print(f"  {name}: {meaning}")
     print()
-    return dict(size=size, field=field, tile=tile,
+    return dict(size=size, field=field, plan=sorted({r["plan"] for r in rows}),
                 views={k: dict(eye_direction=v[0], meaning=v[1]) for k, v in WORK_VIEWS.items()},
                 rows=rows)
 
@@ -551,17 +588,16 @@ def timevarying(b, cfg):
     rows = []
 
     work_size = cfg["work_size"]
-    o, d = work_rays(VIEW_DIRECTION, work_size)
 
     def add(method, change, how, seconds, scene, **extra):
         r = b.render(scene, cam)
         work = dict(nodes_mean=None, leaves_mean=None, hit_fraction=None)
         if cfg["tv_work"]:  # traversal work: load-independent, unlike the render's seconds
-            _, hit, nodes, leaves = b.counts(scene, o, d, work_size)
+            _, hit, nodes, leaves = b.counts(scene, VIEW_DIRECTION, work_size)
             work = dict(nodes_mean=float(nodes.mean()), leaves_mean=float(leaves.mean()),
                         hit_fraction=float(hit.mean()))
         rows.append(dict(method=method, change=change, how=how, seconds=seconds, **work,
-                         render_s=r["run_s"], render_cpu_s=r["cpu_s"],
+                         render_s=r["run_s"], render_cpu_s=r["cpu_s"], plan=r["plan"],
                          render_compile_s=r["compile_s"],
                          render_compile_cached=r["compile_cached"], **extra))
 
@@ -729,7 +765,7 @@ def peers(b, cfg):
     # jaxiso: build and compile once, then an isovalue change costs one render
     bvh, build_s, _ = b.build(mesh, "bih", key=(n, "wave"))
     scene = on_device(TetIsosurface(mesh, PEER_OLD_ISO, bvh=bvh))
-    exe, compile_s, cached = b.render_exe(scene, cam, PLAIN)
+    exe, compile_s, cached, plan = b.render_exe(scene, cam, PLAIN)
     jax.block_until_ready(exe(scene, cam))  # at the old isovalue
     _, timing = b.timed(lambda: exe(scene.with_isovalues(PEER_NEW_ISO), cam))
     image_s = timing["run_s"]
@@ -738,6 +774,7 @@ def peers(b, cfg):
                      warmup_s=timing["warmup_s"], repeats_used=timing["repeats_used"],
                      once=dict(mesh_s=mesh_s, build_s=build_s, compile_s=compile_s),
                      compile_cached=cached, subsample_compile_s=row["compile_s"],
+                     plan=repr(plan), subsample_plan=row["plan"],
                      stages=dict(render_s=image_s), triangles=None,
                      **depth_stats(hit, t, t_ref)))
     if versions.get("vtk") is None or versions.get("open3d") is None:

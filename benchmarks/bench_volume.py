@@ -5,16 +5,20 @@ accuracy against a float64 reference.
     python benchmarks/bench_volume.py [--size 512] [--volume 256] [--quick] [--repeats 3]
         [--only table31,table32,packets,lod,peers,accuracy] [--out benchmarks/results]
 
-Ray casts run ``jax.jit(ji.intersect)`` on the whole image as one queue on 4096
-persistent lanes with refill (what render does from 2^16 rays), except the packets
-section (tile x tile packets in tile order); the peers' jaxiso images ``jax.jit(ji.render)``.
-Compile time (AOT
-``lower().compile()``) is reported apart from run time: one warm-up call, then the
-median of `repeats` calls, each ``jax.block_until_ready``; an entry whose warm-up call
-takes longer than `slow_s` is timed by that call alone (repeats_used 0). Mrays/s =
-pixels / run s. Work counters come from ``hits.steps`` (cells visited per ray). Depth
-errors are in voxel widths (the smallest spacing), against the exact trilinear surface
-computed by tests/reference_volume64.py (float64, sampling + bisection).
+Ray casts run ``ji.intersect(scene, rays, plan=plan)`` on the camera's rays in tile order
+with the plan a user gets (``ji.plan_for(scene, n_rays)``: tile x tile packets, or on the
+CPU from 2^16 rays the whole image as one queue on persistent lanes with refill, as render
+does), except the packets section, which sweeps plans; the peers' jaxiso images run
+``ji.render``. Every row records its plan (``plan``, e.g. "Plan(tile=8, lanes=None)").
+Compile time (AOT ``lower().compile()``) is reported apart from run time: one warm-up
+call, then the median of `repeats` calls, each ``jax.block_until_ready``; an entry whose
+warm-up call takes longer than `slow_s` is timed by that call alone (repeats_used 0).
+Mrays/s = pixels / run s. Where plans are tuned (packets) and in the peers section, the
+calls a user writes first (``ji.intersect(scene, camera.rays())``, ``ji.render(scene,
+camera)``: no plan, no manual ``jax.jit``; first call = compile + run) are timed beside.
+Work counters come from ``hits.steps`` (cells visited per ray). Depth errors are in voxel
+widths (the smallest spacing), against the exact trilinear surface computed by
+tests/reference_volume64.py (float64, sampling + bisection).
 
 Sections:
   table31   compression (seed Table 3.1): octree bytes vs the raw array for the mixing
@@ -24,8 +28,8 @@ Sections:
             build seconds; the reconstruction error (to_array vs the clamped input).
   table32   octree (restart / neighbour traversal) vs the dense macrocell grid (seed
             Table 3.2) on the mixing layer at isovalue 127.5, far and close cameras.
-  packets   tile sizes 2..32 (seed Table 4.2) and the persistent lanes, octree restart,
-            far camera.
+  packets   tile sizes 2..32 (seed Table 4.2) and persistent lanes, octree restart, far
+            camera; the default calls (ji.intersect, ji.render) side by side.
   lod       dP/dV quality 1, 2, 4, smooth and not, vs full resolution (seed Fig. 4.12 /
             4.15): Mrays/s, hit-mask differences and pinholes, colour differences of
             the hits shaded white on black, depth differences; the difference images
@@ -51,7 +55,6 @@ import sys
 import numpy as np
 
 import jaxiso as ji
-from jaxiso.render._render import LANES
 from jaxiso.volume import MacrocellGrid, OctreeVolume, VolumeIsosurface, VolumeSequence, lod_for
 from jaxiso.volume import data as vdata
 
@@ -63,8 +66,7 @@ import reference_volume64 as ref  # noqa: E402
 from _common import compile_cell, fmt, now, print_table, subsample  # noqa: E402
 
 SECTIONS = ("table31", "table32", "packets", "lod", "peers", "accuracy")
-RENDER_TILE = VolumeIsosurface.preferred_tile  # the packet edge render uses for volumes
-RENDER_LANES = LANES  # render's persistent lanes (images of 2^16 rays and more)
+LANES = 4096  # persistent lanes swept by the packets section (plan_for's CPU choice)
 MIXING_TIME = 1.0
 MIXING_ISO = vdata.ISOVALUES["mixing"]  # 127.5, the middle of the mixing layer
 PEER_NEW_ISO = 96.0  # the isovalue the peers section changes to
@@ -187,44 +189,69 @@ class Bench(common.TimedBench):
         return self._octrees[key]
 
     # -- compile and time
-    def render_exe(self, scene, cam, shading, tile=RENDER_TILE):
-        """compiled(...) of jit(render) with a constant `shading` (a Shading checks its
-        fields on construction, so it cannot be a traced argument)."""
-        return self.compiled(("render", tile, id(shading)),
-                             lambda s, c: ji.render(s, c, shading=shading, tile=tile),
-                             scene, cam)
+    def render_exe(self, scene, cam, shading):
+        """(executable, compile s, cached, plan) of jit(render) with the user's plan
+        (``ji.plan_for``) and a constant `shading` (a Shading checks its fields on
+        construction, so it cannot be a traced argument)."""
+        plan = ji.plan_for(scene, cam.width * cam.height)
+        exe, compile_s, cached = self.compiled(
+            ("render", plan, id(shading)),
+            lambda s, c: ji.render(s, c, shading=shading, plan=plan), scene, cam)
+        return exe, compile_s, cached, plan
 
-    def trace(self, scene, cam, tile=None, timed=True):
-        """jit(intersect) of a camera's rays in tile x tile packets, or (tile None) the
-        whole image on RENDER_LANES persistent lanes as render does for large images:
-        (row, hit [H, W], t [H, W], normal [H, W, 3])."""
+    def trace(self, scene, cam, plan=None, timed=True):
+        """jit(intersect) of a camera's rays in tile order with `plan` (default: the user's,
+        ``ji.plan_for(scene, pixels)``): (row, hit [H, W], t [H, W], normal [H, W, 3])."""
         h, w = cam.height, cam.width
         n = h * w
-        if tile is None:
-            rays, packet, opts = cam.rays().reshape((n,)), n, dict(lanes=RENDER_LANES)
-        else:
-            rays, packet, opts = tiled(cam, tile), tile * tile, {}
+        plan = ji.plan_for(scene, n) if plan is None else plan
+        rays = tiled(cam, plan.tile)
         exe, compile_s, cached = self.compiled(
-            ("intersect", tile), lambda s, r: ji.intersect(s, r, packet=packet, **opts),
-            scene, rays)
+            ("intersect", plan), lambda s, r: ji.intersect(s, r, plan=plan), scene, rays)
         hits, timing = self.timed(lambda: exe(scene, rays), timed)
         run_s = timing["run_s"]
 
         def image(a):
-            if tile is None:
-                return np.asarray(a).reshape((h, w) + a.shape[1:])
-            return np.asarray(ji.from_tiles(a, tile, h, w))
+            return np.asarray(ji.from_tiles(a, plan.tile, h, w))
 
         steps = np.asarray(hits.steps, np.int64)
         hit = image(hits.hit)
+        # one queue on persistent lanes: the batch is the packet
+        packet = rays.origin.shape[0] if plan.lanes else plan.packet
         counters = work(steps, packet, run_s)
-        if tile is None:  # lanes refill: a packet's slowest ray does not hold the others
+        if plan.lanes:  # lanes refill: a packet's slowest ray does not hold the others
             counters["lane_utilisation"] = None
-        row = dict(tile=tile, lanes=None if tile else RENDER_LANES, packet=packet, pixels=n,
+        row = dict(**common.plan_fields(plan), packet=packet, pixels=n,
                    compile_s=compile_s, compile_cached=cached, run_s=run_s,
                    warmup_s=timing["warmup_s"], repeats_used=timing["repeats_used"],
                    mrays_per_s=n / run_s / 1e6, hit_fraction=float(hit.mean()), **counters)
         return row, hit, image(hits.t).astype(np.float64), image(hits.normal)
+
+    def defaults(self, scene, cam):
+        """The calls a user writes first, timed as written (no plan, no manual jit):
+        ``ji.intersect(scene, camera.rays())`` (raster order; work counters as `trace`)
+        and ``ji.render(scene, camera)``. Rows as `trace`'s, with first_call_s (compile +
+        first run) instead of compile_s."""
+        n = cam.width * cam.height
+        plan = ji.plan_for(scene, n)
+        rays = cam.rays()
+        hits, row = self.user_call(lambda: ji.intersect(scene, rays), plan,
+                                   "ji.intersect(scene, camera.rays())")
+        steps = np.asarray(hits.steps, np.int64).reshape(-1)
+        packet = n if plan.lanes else plan.packet
+        counters = work(steps, packet, row["run_s"])
+        if plan.lanes:
+            counters["lane_utilisation"] = None
+        row.update(label="default: intersect", packet=packet, pixels=n,
+                   mrays_per_s=n / row["run_s"] / 1e6,
+                   hit_fraction=float(np.mean(np.asarray(hits.hit))), **counters)
+        rows = [row]
+        _, row = self.user_call(lambda: ji.render(scene, cam), plan,
+                                "ji.render(scene, camera)")
+        row.update(label="default: render (with shading)", pixels=n,
+                   mrays_per_s=n / row["run_s"] / 1e6)
+        rows.append(row)
+        return rows
 
 
 def work(steps, packet, run_s):
@@ -387,7 +414,7 @@ def table32(b, cfg):
     grid = MacrocellGrid.from_array(a, spacing=sp, origin=org, levels=(5, 3))
     grid_build_s = now() - t0
     print(f"== Table 3.2 analog: mixing {n}^3 float32, isovalue {MIXING_ISO}, {size}x{size}, "
-          f"{RENDER_LANES} persistent lanes; octree {mb(vol.nbytes)}, macrocell grid "
+          f"the user's plans (ji.plan_for); octree {mb(vol.nbytes)}, macrocell grid "
           f"(levels 2^5, 2^3, over the dense array) {mb(grid.nbytes)}")
     configs = [c for c in (("octree", "restart", vol), ("octree", "neighbor", vol),
                            ("grid", "-", grid)) if c[0] in cfg["structures"]
@@ -406,20 +433,21 @@ def table32(b, cfg):
                        build_s=build_s if structure == "octree" else grid_build_s,
                        mask_diff_vs_restart=float(np.mean(hit != base_hit)))
             rows.append(row)
-            printed.append([cam_kind, structure, traversal, mb(source.nbytes),
+            printed.append([cam_kind, structure, traversal, mb(source.nbytes), row["plan"],
                             compile_cell(row), fmt(row["run_s"]), fmt(row["mrays_per_s"]),
                             fmt(row["steps_mean"], ".1f"), str(row["steps_max"]),
                             fmt(row["hit_fraction"]), fmt(row["lane_utilisation"], ".2f"),
                             fmt(row["ns_per_step"], ".0f"),
                             fmt(row["mask_diff_vs_restart"], ".4f")])
-    print_table(["camera", "structure", "traversal", "bytes", "compile s", "run s", "Mrays/s",
-                 "steps", "max", "hit", "util", "ns/step", "mask diff"], printed)
+    print_table(["camera", "structure", "traversal", "bytes", "plan", "compile s", "run s",
+                 "Mrays/s", "steps", "max", "hit", "util", "ns/step", "mask diff"], printed)
     print("  (* compiled executable reused; mask diff: share of pixels whose hit differs "
           "from octree restart)")
     print(f"  seed Table 3.2 (fps, RM t=270, 16 cores): grid / octree over the 3D array "
           f"{SEED_TABLE32['3D array']}, over octree data {SEED_TABLE32['octree volume']}\n")
-    return dict(volume=n, size=size, isovalue=MIXING_ISO, lanes=RENDER_LANES,
-                octree_build_s=build_s, grid_build_s=grid_build_s, grid_levels=[5, 3],
+    return dict(volume=n, size=size, isovalue=MIXING_ISO,
+                plan=sorted({r["plan"] for r in rows}), octree_build_s=build_s,
+                grid_build_s=grid_build_s, grid_levels=[5, 3],
                 rows=rows, seed_table32=SEED_TABLE32)
 
 
@@ -431,24 +459,39 @@ def packets(b, cfg):
     vol, _ = b.mixing_octree(n)
     cam = camera(view("mixing", "far"), size)
     scene = VolumeIsosurface(vol, MIXING_ISO)
+    user_plan = ji.plan_for(scene, size * size)
     print(f"== Packets (Table 4.2 analog): mixing {n}^3, octree restart, far camera, "
-          f"{size}x{size}")
+          f"{size}x{size}; the user's plan (ji.plan_for) is {user_plan!r}")
+    plans = [(f"{t}x{t}", ji.Plan(tile=t)) for t in cfg["tiles"]]
+    # persistent lanes: the whole image as one queue, in the user plan's tile order
+    plans += [(f"{lanes} lanes", ji.Plan(tile=user_plan.tile, lanes=lanes))
+              for lanes in cfg["lanes"]]
     rows, printed = [], []
-    for tile in cfg["tiles"] + [None]:
-        row, _, _, _ = b.trace(scene, cam, tile=tile)
-        label = f"{tile}x{tile}" if tile else f"{RENDER_LANES} lanes"
+    for label, plan in plans:
+        row, _, _, _ = b.trace(scene, cam, plan)
         row.update(label=label, volume=n, size=size)
         rows.append(row)
-        printed.append([row["label"], compile_cell(row), fmt(row["run_s"]),
+        printed.append([row["label"], row["plan"], compile_cell(row), fmt(row["run_s"]),
                         fmt(row["mrays_per_s"]), fmt(row["steps_mean"], ".1f"),
                         str(row["steps_max"]), fmt(row["lane_utilisation"], ".2f"),
                         fmt(row["ns_per_step"], ".0f")])
-    print_table(["packet", "compile s", "run s", "Mrays/s", "steps", "max", "util", "ns/step"],
-                printed)
+    defaults = b.defaults(scene, cam)
+    for d in defaults:
+        d.update(volume=n, size=size)
+        printed.append([d["label"], d["plan"], fmt(d["first_call_s"], ".1f") + "+",
+                        fmt(d["run_s"]), fmt(d["mrays_per_s"]), fmt(d.get("steps_mean"), ".1f"),
+                        fmt(d.get("steps_max"), "d"), fmt(d.get("lane_utilisation"), ".2f"),
+                        fmt(d.get("ns_per_step"), ".0f")])
+    print_table(["packet", "plan", "compile s", "run s", "Mrays/s", "steps", "max", "util",
+                 "ns/step"], printed)
     best = max(rows, key=lambda r: r["mrays_per_s"])
-    print(f"  fastest: {best['label']} ({best['mrays_per_s']:.4f} Mrays/s); seed Table 4.2 "
-          f"(fps by packet edge): RM {_seed42('RM')}, HEP302 {_seed42('HEP302')}\n")
+    print(f"  fastest: {best['label']} ({best['mrays_per_s']:.4f} Mrays/s); the user's "
+          + "; ".join(f"{d['call']}: {d['mrays_per_s']:.4f} Mrays/s" for d in defaults)
+          + " ('+': a user call's first call, compile + run)")
+    print(f"  seed Table 4.2 (fps by packet edge): RM {_seed42('RM')}, HEP302 "
+          f"{_seed42('HEP302')}\n")
     return dict(volume=n, size=size, rows=rows, fastest=best["label"],
+                user_plan=repr(user_plan), defaults=defaults,
                 seed_table42={k: {str(e): v for e, v in d.items()}
                               for k, d in SEED_TABLE42.items()})
 
@@ -467,9 +510,9 @@ def lod(b, cfg, out_dir):
     direction = np.asarray(cam.rays().direction)
     voxel = float(np.min(np.asarray(vol.spacing)))
     print(f"== Level of detail (Fig. 4.12/4.15 analog): mixing {n}^3, far camera, "
-          f"{size}x{size}; jit(intersect) timed as in table32; images: the hits shaded "
-          f"white on black (Lambert); differences vs full resolution (depth in voxels, "
-          f"where both hit)")
+          f"{size}x{size}; intersect with the user's plans, timed as in table32; images: "
+          f"the hits shaded white on black (Lambert); differences vs full resolution "
+          f"(depth in voxels, where both hit)")
     full = VolumeIsosurface(vol, MIXING_ISO)
     full_row, full_hit, full_t, normal = b.trace(full, cam)
     full_img = lambert_image(full_hit, normal, direction)
@@ -671,8 +714,6 @@ def peers(b, cfg):
     idx = subsample(size, ref_size)
     pix = (idx[:, None] * size + idx[None, :]).reshape(-1)
     r = cam.rays()
-    sub_rays = ji.Rays(ji.to_tiles(r.origin[idx][:, idx], RENDER_TILE),
-                       ji.to_tiles(r.direction[idx][:, idx], RENDER_TILE))
     m = idx.size
     rows = []
     for n in cfg["peer_sizes"]:
@@ -692,16 +733,27 @@ def peers(b, cfg):
         # (a) jaxiso: build once, compile once, then isovalue changes cost one render
         vol, build_s = b.mixing_octree(n)
         scene = VolumeIsosurface(vol, MIXING_ISO)
-        exe, compile_s, cached = b.render_exe(scene, cam, SHADING)
-        _, timing = b.timed(lambda: exe(scene.with_isovalues(PEER_NEW_ISO), cam))
+        new_scene = scene.with_isovalues(PEER_NEW_ISO)
+        exe, compile_s, cached, plan = b.render_exe(scene, cam, SHADING)
+        _, timing = b.timed(lambda: exe(new_scene, cam))
+        # the same image as a user asks for it: ji.render, no plan, no manual jit (its
+        # first call compiles; the same shapes then render any isovalue without one)
+        _, user = b.user_call(lambda: ji.render(new_scene, cam, shading=SHADING), plan,
+                              "ji.render(scene.with_isovalues(new), camera)")
+        sub_plan = ji.plan_for(scene, m * m)
+        sub_rays = ji.Rays(ji.to_tiles(r.origin[idx][:, idx], sub_plan.tile),
+                           ji.to_tiles(r.direction[idx][:, idx], sub_plan.tile))
         sub_exe, sub_compile_s, _ = b.compiled(
-            ("intersect", RENDER_TILE),
-            lambda s, rr: ji.intersect(s, rr, packet=RENDER_TILE**2), scene, sub_rays)
-        hits = sub_exe(scene.with_isovalues(PEER_NEW_ISO), sub_rays)
-        t_j = np.asarray(ji.from_tiles(hits.t, RENDER_TILE, m, m), np.float64).reshape(-1)
+            ("intersect", sub_plan),
+            lambda s, rr: ji.intersect(s, rr, plan=sub_plan), scene, sub_rays)
+        hits = sub_exe(new_scene, sub_rays)
+        t_j = np.asarray(ji.from_tiles(hits.t, sub_plan.tile, m, m),
+                         np.float64).reshape(-1)
         row = dict(pipeline="jaxiso", n=n, voxels=n**3, gen_s=gen_s, build_s=build_s,
+                   plan=repr(plan), subsample_plan=repr(sub_plan),
                    compile_s=compile_s, compile_cached=cached, image_s=timing["run_s"],
                    warmup_s=timing["warmup_s"], repeats_used=timing["repeats_used"],
+                   user_call=user, user_image_s=user["run_s"],
                    octree_nbytes=vol.nbytes, ref_s=ref_s, ref_pixels=int(pix.size),
                    subsample_compile_s=sub_compile_s,
                    **depth_stats(np.isfinite(t_j), t_j, hit_ref, t_ref, voxel))
@@ -718,7 +770,9 @@ def peers(b, cfg):
         print(f"  {n}^3 done (reference {ref_s:.1f} s)", flush=True)
     printed = []
     for r in rows:
-        stages = (f"build {r['build_s']:.2f} + compile {r['compile_s']:.1f} once"
+        stages = (f"build {r['build_s']:.2f} + compile {r['compile_s']:.1f} once; "
+                  f"{r['plan']}; user call ji.render {r['user_image_s']:.3f} (first "
+                  f"{r['user_call']['first_call_s']:.1f})"
                   if r["pipeline"] == "jaxiso" else
                   " + ".join(f"{k[:-2]} {r[k]:.3f}" for k in
                              ("wrap_s", "extract_s", "cast_s", "shade_s") if k in r))
@@ -907,7 +961,7 @@ def config(args):
         size = 32
         # few distinct executables (compiling dominates): one camera, the render tile,
         # one LOD setting, no Marschner-Lobb accuracy rows
-        return dict(quick=True, size=size, volume=64, cameras=["far"], tiles=[RENDER_TILE],
+        return dict(quick=True, size=size, volume=64, cameras=["far"], tiles=[8], lanes=[LANES],
                     structures=["restart", "grid"],
                     t31_size=32, time_steps=[0.0, 2.0], variances=[4.0],
                     lod_qualities=[2.0], lod_smooth=[True], peer_sizes=[64], ref_size=size,
@@ -915,7 +969,7 @@ def config(args):
     sizes = [int(s) for s in args.peer_sizes.split(",")]
     return dict(quick=False, size=args.size, volume=args.volume, cameras=["far", "close"],
                 structures=["restart", "neighbor", "grid"],
-                tiles=[2, 4, 8, 16, 32], t31_size=args.table31_size,
+                tiles=[2, 4, 8, 16, 32], lanes=[LANES], t31_size=args.table31_size,
                 time_steps=[0.0, 1.0, 2.0, 4.0], variances=[4.0],
                 lod_qualities=list(LOD_QUALITIES), lod_smooth=[True, False],
                 peer_sizes=sizes, ref_size=args.ref_size, acc_size=args.acc_size,

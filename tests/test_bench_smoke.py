@@ -65,6 +65,23 @@ def test_time_calls_counts_the_calls():
     assert (timing["repeats_used"], len(calls)) == (0, 1)
 
 
+def test_user_call_times_the_first_call_apart():
+    common = load_module(BENCHMARKS / "_common.py")
+    import jaxiso as ji
+
+    calls = []
+
+    def call():
+        calls.append(1)
+        return len(calls)
+
+    out, row = common.user_call(call, ji.Plan(tile=4, lanes=256), "f()", 3, slow_s=60.0)
+    assert (out, len(calls), row["repeats_used"]) == (5, 5, 3)  # first + warm-up + 3
+    assert row["call"] == "f()" and row["plan"] == "Plan(tile=4, lanes=256)"
+    assert (row["plan_tile"], row["plan_lanes"]) == (4, 256)
+    assert row["first_call_s"] >= 0 and row["run_s"] >= 0
+
+
 def test_run_keeps_the_other_sections_when_one_fails(tmp_path, capsys):
     common = load_module(BENCHMARKS / "_common.py")
     args = argparse.Namespace(out=str(tmp_path / "res"), repeats=1, slow_s=1.0, quick=True)
@@ -109,7 +126,8 @@ def test_quick_run_writes_json(tmp_path):
         assert key in result, key
     assert result["sections"] == ["table61", "table62", "packets", "sweep"]
 
-    row_keys = ("surface", "method", "arithmetic", "eps", "size", "packet", "compile_s",
+    row_keys = ("surface", "method", "arithmetic", "eps", "size", "plan", "tile", "lanes",
+                "packet", "compile_s",
                 "run_s", "mrays_per_s", "steps_mean", "steps_max", "hit_fraction",
                 "exhausted", "lane_utilisation", "ns_per_step")
     for sec in ("table61", "table62", "packets", "sweep"):
@@ -122,6 +140,7 @@ def test_quick_run_writes_json(tmp_path):
             assert 0.0 <= r["hit_fraction"] <= 1.0
             assert r["steps_max"] >= r["steps_mean"] >= 0
             assert abs(r["mrays_per_s"] - r["size"] ** 2 / r["run_s"] / 1e6) < 1e-9
+            assert r["plan"] == f"Plan(tile={r['tile']}, lanes={r['lanes']})"
 
     t61 = result["table61"]
     assert {s["surface"] for s in t61["summary"]} == {"barth_sextic", "mitchell"}
@@ -137,6 +156,16 @@ def test_quick_run_writes_json(tmp_path):
     methods = {r["method"] for r in result["table62"]["rows"]}
     assert methods == {"t-bisection", "k-bisection", "mitchell"}
     assert result["packets"]["fastest"] in {r["label"] for r in result["packets"]["rows"]}
+    # the calls a user writes first, timed beside the tuned plans, with the plan they ran
+    defaults = result["packets"]["defaults"]
+    assert [d["call"] for d in defaults] == ["ji.intersect(scene, camera.rays())",
+                                             "ji.render(scene, camera)"]
+    for d in defaults:
+        assert d["plan"] == result["packets"]["user_plan"]
+        assert d["first_call_s"] > 0 and d["run_s"] > 0 and d["repeats_used"] >= 1
+        assert abs(d["mrays_per_s"] - d["size"] ** 2 / d["run_s"] / 1e6) < 1e-9
+    assert 0.0 <= defaults[0]["hit_fraction"] <= 1.0
+    assert result["target"]["best_plan"].startswith("Plan(tile=")
     for r in result["sweep"]["rows"]:
         assert 0.0 <= r["pixel_error"] <= 1.0
         assert r["axis"] in ("eps", "samples")

@@ -60,6 +60,11 @@ def test_table51_counts_and_rates(run):
         assert r["pixels"] == r["size"] ** 2
         assert r["run_s"] > 0 and r["cpu_s"] > 0 and r["compile_s"] > 0 and r["build_ms"] > 0
         assert r["mrays_per_s"] == pytest.approx(r["pixels"] / r["run_s"] / 1e6)
+        # the plan it ran, and the same image as a user asks for it (no plan, no jit)
+        assert r["plan"] == "Plan(tile=16, lanes=None)"  # TetIsosurface's below 2^16 rays
+        user = r["user_call"]
+        assert user["call"] == "ji.render(scene, camera)" and user["plan"] == r["plan"]
+        assert user["first_call_s"] > 0 and user["run_s"] == r["user_run_s"] > 0
     target = sec["build_target"]
     assert target["checked"] is False and target["met"] is None  # quick meshes are tiny
 
@@ -84,6 +89,7 @@ def test_table54_work_counters(run):
     assert {(r["method"], r["view"]) for r in rows} == {
         (m, v) for m in ("bih", "sah") for v in ("default", "opposite")}
     for r in rows:
+        assert r["plan"] == f"Plan(tile={r['tile']}, lanes={r['lanes']})"
         assert 0.0 < r["hit_fraction"] < 1.0
         # every leaf intersected is a node visited, and a hitting ray enters some leaf
         assert r["nodes_mean"] >= r["leaves_mean"] > 0

@@ -24,7 +24,11 @@ def check_timing_row(r):
     assert abs(r["mrays_per_s"] - r["pixels"] / r["run_s"] / 1e6) < 1e-9
     assert r["steps_max"] >= r["steps_mean"] >= 0
     assert 0.0 <= r["hit_fraction"] <= 1.0
-    assert 0.0 < r["lane_utilisation"] <= 1.0
+    assert r["plan"] == f"Plan(tile={r['tile']}, lanes={r['lanes']})"
+    if r["lanes"] is None:  # packets: a packet waits for its slowest ray
+        assert 0.0 < r["lane_utilisation"] <= 1.0
+    else:  # persistent lanes refill: not measured
+        assert r["lane_utilisation"] is None
 
 
 # ~45-90 s on 2 cores (five compiles): run with the benchmarks, not in the CI suite
@@ -70,6 +74,16 @@ def test_quick_run_writes_json(tmp_path):
     # the grid and the octree intersect the same interpolant: identical hit masks
     assert all(r["mask_diff_vs_restart"] < 0.01 for r in t32)
     assert result["packets"]["fastest"] in {r["label"] for r in result["packets"]["rows"]}
+    assert any(r["lanes"] for r in result["packets"]["rows"])
+    # the calls a user writes first, timed beside the tuned plans, with the plan they ran
+    defaults = result["packets"]["defaults"]
+    assert [d["call"] for d in defaults] == ["ji.intersect(scene, camera.rays())",
+                                             "ji.render(scene, camera)"]
+    for d in defaults:
+        assert d["plan"] == result["packets"]["user_plan"]
+        assert d["first_call_s"] > 0 and d["run_s"] > 0
+        assert abs(d["mrays_per_s"] - d["pixels"] / d["run_s"] / 1e6) < 1e-9
+    assert 0.0 <= defaults[0]["hit_fraction"] <= 1.0
 
     lod = result["lod"]["rows"]
     assert lod[0]["label"] == "full" and lod[0]["mask_diff"] == 0.0
@@ -82,6 +96,8 @@ def test_quick_run_writes_json(tmp_path):
     assert len(jaxiso_rows) == 1
     r = jaxiso_rows[0]
     assert r["image_s"] > 0 and r["build_s"] > 0 and r["compile_s"] > 0
+    assert r["plan"].startswith("Plan(") and r["user_call"]["plan"] == r["plan"]
+    assert r["user_image_s"] > 0
     # exact trilinear roots: far below a voxel against the float64 reference
     assert r["mask_agreement"] >= 0.99 and r["depth_err_p99"] < 1e-2
     pipelines = {p["pipeline"] for p in peers["rows"]}
