@@ -118,7 +118,7 @@ def test_scene_of_a_constant_isovalue_is_hit_where_rays_enter_the_box(arithmetic
     scene = ji.ImplicitSurface(lambda x, y, z: 2, lo=LO, hi=HI, isovalues=(0.5, 2.0),
                                arithmetic=arithmetic)
     rays = _rays()
-    hits = ji.intersect(scene, rays, method=method)
+    hits = ji.intersect(scene.replace(method=method), rays)
     enters, t_entry, d = _box_entry(rays)
     hit = np.asarray(hits.hit).ravel()
     np.testing.assert_array_equal(hit, enters)

@@ -61,7 +61,7 @@ def test_postponed_leaf_tests_give_the_same_hits_and_work_whenever_they_fire():
     # rays wait at leaves until a fraction of the packet waits: 0 tests every leaf as soon
     # as a ray reaches it, 1 only when all busy rays wait; the hits, and the nodes and
     # leaves each ray visits, must not depend on when the tests run
-    from jaxiso.tetra._traverse import traverse
+    from jaxiso.tetra import traverse
 
     values = data.random_field(POINTS, 2)
     scene = TetIsosurface(tet_mesh(POINTS, TETS, values), [0.1, -0.3], bvh="bih")
