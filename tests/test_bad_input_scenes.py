@@ -59,6 +59,16 @@ def test_w_must_be_finite(w):
         S.replace(w=w)
 
 
+def test_params_must_be_finite():
+    def blob(x, y, z, params):
+        return x * x + y * y + z * z - params["r"][0] ** 2
+
+    ok = ji.ImplicitSurface(blob, **BOX, params={"r": np.array([1.0, 2.0])})
+    with pytest.raises(ValueError, match=r"params\['r'\] must be finite: 1 NaN or inf"):
+        ok.replace(params={"r": np.array([1.0, np.nan])})
+    ok.replace(params={"r": np.array([0.5, 2.0]), "n": np.int32(3)})  # ints pass
+
+
 def test_delta_and_lipschitz_are_checked():
     with pytest.raises(ValueError, match=r"delta must be >= 0"):
         S.replace(delta=-1.0)

@@ -105,7 +105,6 @@ class _ImplicitOptions(SceneFields):
         return _plan(self.method, self.arithmetic, n_rays, backend)
 
 
-
 @pytree_dataclass
 class ImplicitSurface(_ImplicitOptions):
     """The level sets ``f = iso`` of a user function inside the box [lo, hi].
@@ -296,6 +295,11 @@ def _check_values(scene) -> None:
         v = concrete(getattr(scene, name, None))
         if v is not None and v.dtype != object and not np.all(np.isfinite(v)):
             raise ValueError(f"{name} must be finite, got {v}")
+    for path, leaf in jax.tree_util.tree_leaves_with_path(scene.params):
+        v = concrete(leaf)
+        if v is not None and np.issubdtype(v.dtype, np.inexact) and not np.all(np.isfinite(v)):
+            raise ValueError(f"params{jax.tree_util.keystr(path)} must be finite: "
+                             f"{int(np.size(v) - np.isfinite(v).sum())} NaN or inf values")
     delta = concrete(getattr(scene, "delta", 0.0))
     if delta is not None and delta < 0:
         raise ValueError(f"delta must be >= 0 (0: no range tolerance), got {delta}")
