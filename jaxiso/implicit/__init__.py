@@ -2,5 +2,6 @@
 
 from . import csg, surfaces
 from ._scene import ImplicitSurface
+from .vm import VMProgram, load_vm
 
-__all__ = ["surfaces", "ImplicitSurface", "csg"]
+__all__ = ["surfaces", "ImplicitSurface", "csg", "load_vm", "VMProgram"]
