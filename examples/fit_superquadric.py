@@ -5,7 +5,7 @@ of every camera ray, `background` where the ray misses) is rendered with the tru
 exponents from two views; the fit starts from other exponents and runs Adam on the
 mean squared depth error over the pixels hit in both images (weighted down near the
 silhouette, where pixels come and go). Gradients of t come from the implicit function
-theorem (`jaxiso.implicit._scene.attach_t`), never from the bisection loops, and the
+theorem (`ji.intersect` attaches it to t), never from the bisection loops, and the
 parameters are traced arguments, so one jitted step serves the whole fit.
 
     python examples/fit_superquadric.py --size 32 --steps 60
