@@ -18,9 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 
 __all__ = ["Rays", "Hits", "Plan", "Scene", "SceneFields", "pytree_dataclass", "static_field",
-           "slab",
-           "facing", "unit_or_facing", "attach_t", "miss_like", "concrete", "check_finite",
-           "check_choice", "cpu_lanes"]
+           "slab", "facing", "unit_or_facing", "on_points", "attach_t", "miss_like",
+           "concrete", "check_finite", "check_choice", "cpu_lanes"]
 
 
 # -- the one pytree mechanism ---------------------------------------------------------
@@ -286,11 +285,32 @@ def unit_or_facing(grad, direction):
     return jnp.where(ok, grad / jnp.where(ok, norm, 1.0), back)
 
 
+def on_points(g: Callable) -> Callable:
+    """``G(x, y, z, *rest)``: the point function ``g(x, y, z, *rest)`` (written for one
+    point: scalar coordinates in, a scalar or a pytree of arrays out) evaluated on
+    batches of points by `jax.vmap`.
+
+    x, y and z broadcast to a batch shape S; `rest` (w, params, ...) is shared by every
+    point, unbatched. Each output leaf gets S in front of its per-point shape. Every place
+    that evaluates a user's function on many points goes through here, so that any
+    scalar JAX function works (``jnp.stack([x, y, z]) @ W`` included), and functions
+    that broadcast by themselves give the same values as called on arrays."""
+    @functools.wraps(g)
+    def G(x, y, z, *rest):
+        x, y, z = jnp.broadcast_arrays(x, y, z)
+        shape = x.shape
+        out = jax.vmap(lambda x, y, z: g(x, y, z, *rest))(
+            x.reshape(-1), y.reshape(-1), z.reshape(-1))
+        return jax.tree_util.tree_map(lambda a: a.reshape(shape + a.shape[1:]), out)
+    return G
+
+
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
 def attach_t(g: Callable, t, o, d, w, params, iso, hit):
-    """The hit parameter t [P] of rays o + t d on g(x, y, z, w, params) = iso, returned as
-    is; its derivative comes from the implicit function theorem:
-    dt = -(dg - diso) / (grad g . d), with dg the change of g at the fixed hit point."""
+    """The hit parameter t [P] of rays o + t d on g(x, y, z, w, params) = iso (g a point
+    function, evaluated through `on_points`), returned as is; its derivative comes from
+    the implicit function theorem: dt = -(dg - diso) / (grad g . d), with dg the change
+    of g at the fixed hit point."""
     return t
 
 
@@ -298,15 +318,16 @@ def attach_t(g: Callable, t, o, d, w, params, iso, hit):
 def _attach_t_jvp(g, primals, tangents):
     t, o, d, w, params, iso, hit = primals
     _, do, dd, dw, dparams, diso, _ = tangents
+    value = on_points(g)
+    partials = on_points(jax.grad(g, argnums=(0, 1, 2)))
 
     def at(q, w, params):
-        return g(q[0], q[1], q[2], w, params)
+        return value(q[:, 0], q[:, 1], q[:, 2], w, params)
 
     q = o + t[:, None] * d
     dq = do + t[:, None] * dd
-    batched = jax.vmap(at, in_axes=(0, None, None))
-    _, dg = jax.jvp(batched, (q, w, params), (dq, dw, dparams))
-    grad = jax.vmap(jax.grad(at), in_axes=(0, None, None))(q, w, params)
+    _, dg = jax.jvp(at, (q, w, params), (dq, dw, dparams))
+    grad = jnp.stack(partials(q[:, 0], q[:, 1], q[:, 2], w, params), axis=-1)
     denom = jnp.sum(grad * d, axis=-1)
     ok = hit & (jnp.abs(denom) > 1e-20) & jnp.isfinite(denom)
     dt = jnp.where(ok, -(dg - diso) / jnp.where(ok, denom, 1.0), 0.0)

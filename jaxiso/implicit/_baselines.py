@@ -39,7 +39,7 @@ from jax import lax
 
 from ..arith import Affine, aa, extend
 from . import _bisect
-from ._field import contains_any, enclosure, extended, ray_boxes
+from ._field import contains_any, enclosure, extended, on_points, ray_boxes
 
 __all__ = ["run", "mitchell", "sampling", "sphere", "BASELINES"]
 
@@ -96,7 +96,8 @@ def run(method, g, scene, p, D, inside, eps, arithmetic, rounding, max_steps,
 
 
 def _point_value(g, scene, p, D, s):
-    """g(p + D s) for one ray (p, D: [3]; s scalar)."""
+    """g(p + D s) for one ray (p, D: [3]; s scalar): a call of the point function at one
+    point, inside the per-ray `vmap` (batches of points go through `on_points`)."""
     x = p + D * s
     return g(x[0], x[1], x[2], scene.w, scene.params)
 
@@ -305,9 +306,8 @@ def sampling(g, scene, p, D, inside, eps, *, samples=DEFAULT_SAMPLES,
     length = jnp.linalg.norm(D, axis=-1)
     s = jnp.linspace(0.0, 1.0, n, dtype=jnp.float32)
     pts = p[:, None, :] + D[:, None, :] * s[None, :, None]  # [P, n, 3]
-    flat = pts.reshape(-1, 3)
-    v = jax.vmap(lambda x: g(x[0], x[1], x[2], scene.w, scene.params))(flat)
-    v = v.reshape(pts.shape[:2]).astype(jnp.float32)  # [P, n]
+    v = on_points(g)(pts[..., 0], pts[..., 1], pts[..., 2], scene.w, scene.params)
+    v = v.astype(jnp.float32)  # [P, n]
     diff = v[..., None] - iso  # [P, n, I]
     change = jnp.any(_sign_change(diff[:, :-1], diff[:, 1:]), axis=-1)  # [P, n - 1]
     first = jnp.argmax(change, axis=-1).astype(jnp.int32)

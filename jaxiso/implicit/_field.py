@@ -13,17 +13,21 @@ import inspect
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from .._core import slab, unit_or_facing
+from .._core import on_points, slab, unit_or_facing
 from ..arith import Affine, Interval, aa, extend, ia
 
 
 def as_field(f, has_params: bool):
     """``g(x, y, z, w, params)`` calling f with the arguments it declares.
 
-    g returns a float array of the coordinates' broadcast shape: a constant f (``1.0``,
-    ``jnp.float32(0)``) is broadcast, an integer value becomes float32, and a bool (an
-    inequality, which has no surface) raises TypeError when g is called."""
+    g is a point function like f (batches of points go through `on_points`, so f may be
+    any scalar JAX function). It returns a float array of the coordinates' broadcast
+    shape: a constant f (``1.0``, ``jnp.float32(0)``) is broadcast, an integer value
+    becomes float32; a bool (an inequality, which has no surface) raises TypeError and a
+    value with more entries than points (e.g. shape (1,) for one point) ValueError when
+    g is called."""
     try:
         sig = inspect.signature(f)
         kinds = (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
@@ -69,7 +73,11 @@ def _real_value(value, *coords):
                         "difference x*x + y*y - 1 instead")
     if not jnp.issubdtype(value.dtype, jnp.floating):
         value = value.astype(jnp.float32)
-    shape = jnp.broadcast_shapes(value.shape, *[jnp.shape(c) for c in coords])
+    shape = jnp.broadcast_shapes(*[jnp.shape(c) for c in coords])
+    if jnp.broadcast_shapes(value.shape, shape) != shape:
+        raise ValueError(f"f must return one number per point, got shape {value.shape} for "
+                         f"points of shape {shape}; take the single output (e.g. out[0] or "
+                         "jnp.squeeze(out))")
     return jnp.broadcast_to(value, shape)
 
 
@@ -142,22 +150,22 @@ def ray_segments(rays, lo, hi, t_min, t_max):
 
 
 def point_normal(g, p, w, params, direction, stencil=None):
-    """Unit normal from the gradient of g at points p [..., 3] (jax.grad by default,
-    central differences of width `stencil` otherwise, Sec. 6.4.7). Where the gradient
-    vanishes or is not finite the normal faces the ray: -direction / |direction|."""
+    """Unit normal from the gradient of the point function g at points p [..., 3]
+    (jax.grad by default, central differences of width `stencil` otherwise, Sec. 6.4.7),
+    both through `on_points`. Where the gradient vanishes or is not finite the normal
+    faces the ray: -direction / |direction|."""
+    x, y, z = p[..., 0], p[..., 1], p[..., 2]
     if stencil is None:
-        def grad_one(q):
-            return jnp.stack(jax.grad(lambda q: g(q[0], q[1], q[2], w, params))(q))
-        grad = jax.vmap(grad_one)(p.reshape(-1, 3)).reshape(p.shape)
+        grad = jnp.stack(on_points(jax.grad(g, argnums=(0, 1, 2)))(x, y, z, w, params),
+                         axis=-1)
     else:
         h = jnp.float32(stencil)
-        eye = jnp.eye(3, dtype=p.dtype) * h
-        def at(q):
-            return g(q[..., 0], q[..., 1], q[..., 2], w, params)
-        grad = jnp.stack([(at(p + eye[i]) - at(p - eye[i])) / (2 * h) for i in range(3)],
-                         axis=-1)
+        G = on_points(g)
+        grad = jnp.stack([(G(x + h * e[0], y + h * e[1], z + h * e[2], w, params)
+                           - G(x - h * e[0], y - h * e[1], z - h * e[2], w, params)) / (2 * h)
+                          for e in np.eye(3, dtype=np.float32)], axis=-1)
     return unit_or_facing(grad, direction)
 
 
-__all__ = ["as_field", "ray_boxes", "enclosure", "contains_any", "extended",
+__all__ = ["as_field", "on_points", "ray_boxes", "enclosure", "contains_any", "extended",
            "clip_to_box", "ray_segments", "point_normal", "ia"]

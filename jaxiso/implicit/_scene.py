@@ -32,6 +32,7 @@ from ._field import (
     contains_any,
     enclosure,
     extended,
+    on_points,
     point_normal,
     ray_boxes,
     ray_segments,
@@ -118,7 +119,8 @@ class ImplicitSurface(_ImplicitOptions):
       delta: range tolerance: also accept a piece whose enclosure is narrower (0: off).
       lipschitz: Lipschitz bound of f for method "sphere" (None otherwise).
     Static fields (a new value compiles anew):
-      f: ``f(x, y, z[, w][, params])`` in plain jax.numpy on scalars.
+      f: ``f(x, y, z[, w][, params])`` in plain jax.numpy on scalars (one point in, one
+        number out; it need not broadcast over arrays: jaxiso vmaps it).
       arithmetic: "interval" or "affine".
       method: "t-bisection" | "k-bisection" | "mitchell" | "sampling" | "sphere".
       rounding: "fast" (the seed) or "outward" (enclosures hold against exact arithmetic).
@@ -169,8 +171,9 @@ class ImplicitSurface(_ImplicitOptions):
         return as_field(self.f, self.has_params)
 
     def __call__(self, x, y, z):
-        """The field f at points (the isovalues are not subtracted)."""
-        return self.field(x, y, z, self.w, self.params)
+        """The field f at points x, y, z (arrays of any broadcastable shapes, evaluated
+        point by point through `on_points`; the isovalues are not subtracted)."""
+        return on_points(self.field)(x, y, z, self.w, self.params)
 
     def intersect_packet(self, rays, t_min, t_max, *, lanes: int | None = None) -> Hits:
         """First hits of one packet of rays [P] (the scene protocol, `jaxiso.Scene`)."""
@@ -257,12 +260,13 @@ def _k_bisection(test, p, D, d_max, inside, length, max_steps):
 
 def finish_hits(g, scene, rays, t_raw, hit, steps, normals, which=None) -> Hits:
     """Which isovalue (unless `which` is given: then g vanishes on every part), a
-    differentiable t and the normal of each hit."""
+    differentiable t and the normal of each hit (g, a point function, is evaluated on
+    the packet through `on_points`)."""
     o, d = rays.origin, rays.direction
     safe_t = jnp.where(hit, t_raw, 0.0)
     if which is None:
         p_raw = jax.lax.stop_gradient(o + safe_t[:, None] * d)
-        val = g(p_raw[:, 0], p_raw[:, 1], p_raw[:, 2], scene.w, scene.params)
+        val = on_points(g)(p_raw[:, 0], p_raw[:, 1], p_raw[:, 2], scene.w, scene.params)
         iso = scene.isovalues
         which = jnp.argmin(jnp.abs(val[:, None] - iso[None, :]), axis=-1).astype(jnp.int32)
         level = iso[which]

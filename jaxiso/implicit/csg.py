@@ -24,7 +24,7 @@ import jax.numpy as jnp
 
 from .._core import Hits, Plan, pytree_dataclass, static_field
 from ._bisect import BoxTest as _BoxTest
-from ._field import as_field, enclosure, extended, ray_boxes, ray_segments
+from ._field import as_field, enclosure, extended, on_points, ray_boxes, ray_segments
 from ._scene import (
     DEFAULT_EPS,
     _check_lanes,
@@ -153,7 +153,8 @@ class CSG(_ImplicitOptions):
 
     @property
     def field(self):
-        """Pointwise: the drawn leaf nearest to its zero set (at a hit, the part hit)."""
+        """Point function: the drawn leaf nearest to its zero set (at a hit, the part
+        hit); batches go through `on_points`."""
         fields = [as_field(s.f, self.has_params) for s in self.leaves]
         drawn = jnp.array([s.draw for s in self.leaves])
 
@@ -201,8 +202,8 @@ class CSG(_ImplicitOptions):
         t_raw = jnp.where(res.hit, t0 + res.s * (t1 - t0), jnp.inf)
         # which part: the drawn leaf nearest its zero set at the hit point
         pts = jax.lax.stop_gradient(o + jnp.where(res.hit, t_raw, 0.0)[:, None] * d)
-        vals = jnp.stack([fi(pts[:, 0], pts[:, 1], pts[:, 2], scene.w, scene.params)
-                          for fi in fields], axis=-1)
+        vals = jnp.stack([on_points(fi)(pts[:, 0], pts[:, 1], pts[:, 2], scene.w,
+                                        scene.params) for fi in fields], axis=-1)
         drawn = jnp.array([s.draw for s in leaves])
         which = jnp.argmin(jnp.where(drawn, jnp.abs(vals), jnp.inf), axis=-1)
         return finish_hits(self.field, self, rays, t_raw, res.hit, res.steps, self.normals,
