@@ -19,9 +19,10 @@ accumulated error term. ``n = 1`` is the seed's float3 form (Algorithm 6).
 * Comparisons return the three-valued `Interval` of bools of the interval module; `where`
   keeps the chosen branch exactly and takes the hull where the condition is unknown.
 
-Empty results carry a NaN error term (and centre); an overflowed form whose centre became
-NaN but whose error term did not is the entire line, not empty. Unbounded forms have an
-infinite `err`.
+Empty results carry a NaN error term (and centre), and so does a NaN constant (the piece
+of a domain where f is NaN has no surface, as in IA); an overflowed form whose centre
+became NaN but whose error term did not is the entire line, not empty. Unbounded forms
+have an infinite `err`; an infinite point (inf * [1, 2]) keeps an infinite centre.
 
 This module is the `aa` namespace: the type and conversions come from `_affine_type`.
 """
@@ -99,14 +100,17 @@ def mul(a, b) -> Affine:
     if not isinstance(b, (Affine, Interval)):  # constant factor: an exact affine scaling
         (a,) = _lift(a)
         k = jnp.asarray(b, a.center.dtype)
+        # a NaN factor gives no value (empty), as in interval arithmetic
         return _guard_unbounded(Affine(k * a.center, k[..., None] * a.dev,
-                                       ia._times(jnp.abs(k), a.err), a.defined), a)
+                                       ia._times(jnp.abs(k), a.err), a.defined), a,
+                                as_affine(k, a.n), fallback=ia.mul(_range(a), k))
     a, b = _lift(a, b)
     c = a.center * b.center
     dev = a.center[..., None] * b.dev + b.center[..., None] * a.dev
     err = (ia._times(jnp.abs(a.center), b.err) + ia._times(jnp.abs(b.center), a.err)
            + ia._times(radius(a), radius(b)))
-    return _guard_unbounded(Affine(c, dev, err, _flag(a, b)), a, b)
+    return _guard_unbounded(Affine(c, dev, err, _flag(a, b)), a, b,
+                            fallback=ia.mul(_range(a), _range(b)))
 
 
 def square(a) -> Affine:
@@ -117,7 +121,7 @@ def square(a) -> Affine:
     c = a.center * a.center + half_r2
     dev = 2.0 * a.center[..., None] * a.dev
     err = 2.0 * ia._times(jnp.abs(a.center), a.err) + half_r2
-    return _guard_unbounded(Affine(c, dev, err, a.defined), a)
+    return _guard_unbounded(Affine(c, dev, err, a.defined), a, fallback=ia.square(_range(a)))
 
 
 def _linearized(x: Affine, alpha, d_lo, d_hi, fallback_iv: Interval, defined) -> Affine:
