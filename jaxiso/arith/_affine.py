@@ -11,6 +11,9 @@ accumulated error term. ``n = 1`` is the seed's float3 form (Algorithm 6).
 * Convex/concave functions (exp, log, sqrt, reciprocal, even powers, x**p, cosh, abs)
   use the Chebyshev linearisation, made sound for any float rounding of the slope by
   bounding the convex error from below with a tangent at the approximate minimiser.
+  Near its pole (|hi| > 2 |lo|) the reciprocal uses min-range instead: the chord there is
+  so steep that the form's range would reach across 0 (1/x - y "holding" a root beside
+  the asymptote); a range touching 0 is unbounded.
 * Monotone sigmoid-like functions (tanh, atan, sinh, cbrt) use the min-range
   linearisation (slope = the smallest derivative on the range).
 * sin, cos, tan, floor, ceil, sign, fmod fall back to `Interval` (centre and error only,
@@ -182,14 +185,33 @@ def _minrange(x: Affine, g, alpha, iv: Interval, fallback_iv: Interval) -> Affin
                        fallback_iv, iv.defined & x.defined)
 
 
+# `recip` linearises by Chebyshev only while |hi| <= _RECIP_RATIO |lo| (a range away
+# from the pole): there the form's range stays within 2 sqrt(r) - r >= 83% of the least
+# value 1/|hi|. Nearer the pole the chord is so steep that the form reaches far past 0
+# (below 1/|hi| by (1/sqrt|lo| - 1/sqrt|hi|)^2, the sign lost for r > 4), so `1/x - y`
+# would "contain" a root on pieces next to the asymptote; min-range keeps the range.
+_RECIP_RATIO = 2.0
+
+
 def recip(a) -> Affine:
+    """1 / a: Chebyshev on a range away from 0, min-range (slope ``-1/mag^2``, the
+    form's range is ``[1/hi, 1/lo]``) near the pole, unbounded (interval rule) when the
+    range touches 0."""
     (a,) = _lift(a)
     iv = _range(a)
     positive = iv.lo > 0
+    fallback = ia.recip(iv)
     out = _chebyshev(a, lambda v: 1.0 / v, lambda v: -1.0 / (v * v),
                      lambda al: jnp.where(positive, 1.0, -1.0) * jnp.sqrt(-1.0 / al),
-                     positive, iv, ia.recip(iv))
-    return _select((iv.lo > 0) | (iv.hi < 0), out, _interval_fallback(ia.recip(iv), a.n))
+                     positive, iv, fallback)
+    # min-range: g - alpha x is non-increasing for alpha >= -1/mag^2; alpha rounded
+    # toward 0 by a few ulps keeps it so
+    m = ia.mag(iv)
+    eps = float(jnp.finfo(m.dtype).eps)
+    alpha = -(1.0 / (m * m)) * (1.0 - 4.0 * eps)
+    near_pole = _minrange(a, lambda v: 1.0 / v, alpha, iv, fallback)
+    out = _select(m <= _RECIP_RATIO * ia.mig(iv), out, near_pole)
+    return _select((iv.lo > 0) | (iv.hi < 0), out, _interval_fallback(fallback, a.n))
 
 
 def div(a, b) -> Affine:
