@@ -16,8 +16,11 @@ accumulated error term. ``n = 1`` is the seed's float3 form (Algorithm 6).
   the asymptote); a range touching 0 is unbounded.
 * Monotone sigmoid-like functions (tanh, atan, sinh, cbrt) use the min-range
   linearisation (slope = the smallest derivative on the range).
-* sin, cos, tan, floor, ceil, sign, fmod fall back to `Interval` (centre and error only,
-  correlation lost), as the seed does for its GPU RAA (Sec. 6.5.4).
+* sin, cos: a first-order Taylor form (Interval on wide boxes, see `_sinusoid`).
+* tan, floor, ceil, sign, fmod fall back to `Interval` (centre and error only,
+  correlation lost), as the seed does for its GPU RAA (Sec. 6.5.4); constant operands
+  stay exact points there. `extend` runs the bodies of jnp.remainder / floor_divide /
+  divmod in interval arithmetic (`_rules.INTERVAL_CALLS`).
 * min/max use the exact identity ``max(a, b) = (a + b + |a - b|) / 2``.
 * Comparisons return the three-valued `Interval` of bools of the interval module; `where`
   keeps the chosen branch exactly and takes the hull where the condition is unknown.
@@ -369,8 +372,12 @@ def cbrt(a) -> Affine:
 
 def _via_interval(fn):
     def rule(*args):
-        args = _lift(*args)
-        return _interval_fallback(fn(*[_range(x) for x in args]), args[0].n)
+        # constants stay exact points: lifted, `_range` would pad them by an ulp, and
+        # rules that are exact for a point operand (fmod by a constant within one
+        # period) would fall back to their loose bound (x // 0.5, remainder, fmod)
+        n = _n_of(*args)
+        return _interval_fallback(
+            fn(*[_range(x) if isinstance(x, Affine) else ia.as_interval(x) for x in args]), n)
 
     rule.__name__ = fn.__name__
     rule.__doc__ = f"{fn.__name__} through Interval (correlation not kept)."

@@ -85,13 +85,15 @@ def to_interval(x: Affine) -> Interval:
 def _range(x: Affine) -> Interval:
     """`to_interval` padded by an ulp of ``|center| + rad``: the range the rules work on.
     Rounding ``center +- rad`` to nearest can cut into the set (far from 0 the centre
-    cannot even hold a small endpoint), so internal conversions always pad."""
+    cannot even hold a small endpoint), so internal conversions pad all but exact points."""
     iv = to_interval(x)
     finfo = jnp.finfo(jnp.result_type(x.center))
     pad = float(finfo.eps) * jnp.abs(x.center) + float(finfo.eps) * radius(x) + float(
         finfo.tiny)  # two terms: their sum could overflow near the float32 maximum
-    # overflowed (NaN: iv is already entire) or an infinite point (exact): no pad
-    pad = jnp.where(jnp.isnan(x.center) | jnp.isinf(x.center), 0.0, pad)
+    # overflowed (NaN: iv is already entire), an infinite point or any exact point
+    # (centre +- 0 is not rounded: floor(x) = [k, k] must compare with 0 as IA does)
+    point = (x.err == 0) & jnp.all(x.dev == 0, axis=-1)
+    pad = jnp.where(jnp.isnan(x.center) | jnp.isinf(x.center) | point, 0.0, pad)
     return Interval(iv.lo - pad, iv.hi + pad, iv.defined)
 
 
