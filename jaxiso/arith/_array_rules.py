@@ -166,8 +166,13 @@ def floor_divide_interval(a, b):
     # loose but sound: floor(a / b) rounded, the rounding of jnp's quotient allowed for
     q = ia.div(a, ia.point(b))
     eps = float(jnp.finfo(a.lo.dtype).eps)
-    loose_lo = jnp.floor(q.lo) - 2.0 - 8.0 * eps * jnp.abs(q.lo)
-    loose_hi = jnp.floor(q.hi) + 1.0 + 8.0 * eps * jnp.abs(q.hi)
+    big = float(jnp.finfo(a.lo.dtype).max)
+    # an overflowed quotient end (+inf lower, -inf upper) stands for a finite real beyond
+    # the largest float: bound it by that float (inf - inf would be NaN)
+    loose_lo = jnp.where(q.lo == jnp.inf, big,
+                         jnp.floor(q.lo) - 2.0 - 8.0 * eps * jnp.abs(q.lo))
+    loose_hi = jnp.where(q.hi == -jnp.inf, -big,
+                         jnp.floor(q.hi) + 1.0 + 8.0 * eps * jnp.abs(q.hi))
     exact = (jnp.isfinite(b) & (b != 0) & (ia.mag(a) < _FLOORDIV_EXACT * jnp.abs(b)))
     lo = jnp.where(exact, exact_lo, loose_lo)
     hi = jnp.where(exact, exact_hi, loose_hi)
