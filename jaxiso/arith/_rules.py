@@ -257,3 +257,7 @@ NAMED_CALLS["hypot"] = Rule(ar.hypot_interval, ar.hypot_affine,
 # returns NotImplemented for other operands, whose body is then evaluated
 NAMED_CALLS["floor_divide"] = Rule(ar.floor_divide_interval, ar.floor_divide_affine,
                                    ulps=0.0)
+# jnp.trunc: its body is where(x < 0, ceil, floor), the hull [-1, 1] on a box across 0
+# where trunc is 0; trunc itself is non-decreasing
+_trunc = ia.monotone_increasing(jnp.trunc)
+NAMED_CALLS["trunc"] = Rule(_trunc, aa._via_interval(_trunc))
