@@ -11,17 +11,24 @@ accumulated error term. ``n = 1`` is the seed's float3 form (Algorithm 6).
 * Convex/concave functions (exp, log, sqrt, reciprocal, even powers, x**p, cosh, abs)
   use the Chebyshev linearisation, made sound for any float rounding of the slope by
   bounding the convex error from below with a tangent at the approximate minimiser.
+  Near its pole (|hi| > 2 |lo|) the reciprocal uses min-range instead: the chord there is
+  so steep that the form's range would reach across 0 (1/x - y "holding" a root beside
+  the asymptote); a range touching 0 is unbounded.
 * Monotone sigmoid-like functions (tanh, atan, sinh, cbrt) use the min-range
   linearisation (slope = the smallest derivative on the range).
-* sin, cos, tan, floor, ceil, sign, fmod fall back to `Interval` (centre and error only,
-  correlation lost), as the seed does for its GPU RAA (Sec. 6.5.4).
+* sin, cos: a first-order Taylor form (Interval on wide boxes, see `_sinusoid`).
+* tan, floor, ceil, sign, fmod fall back to `Interval` (centre and error only,
+  correlation lost), as the seed does for its GPU RAA (Sec. 6.5.4); constant operands
+  stay exact points there. `extend` runs the bodies of jnp.remainder / floor_divide /
+  divmod in interval arithmetic (`_rules.INTERVAL_CALLS`).
 * min/max use the exact identity ``max(a, b) = (a + b + |a - b|) / 2``.
 * Comparisons return the three-valued `Interval` of bools of the interval module; `where`
   keeps the chosen branch exactly and takes the hull where the condition is unknown.
 
-Empty results carry a NaN error term (and centre); an overflowed form whose centre became
-NaN but whose error term did not is the entire line, not empty. Unbounded forms have an
-infinite `err`.
+Empty results carry a NaN error term (and centre), and so does a NaN constant (the piece
+of a domain where f is NaN has no surface, as in IA); an overflowed form whose centre
+became NaN but whose error term did not is the entire line, not empty. Unbounded forms
+have an infinite `err`; an infinite point (inf * [1, 2]) keeps an infinite centre.
 
 This module is the `aa` namespace: the type and conversions come from `_affine_type`.
 """
@@ -99,14 +106,17 @@ def mul(a, b) -> Affine:
     if not isinstance(b, (Affine, Interval)):  # constant factor: an exact affine scaling
         (a,) = _lift(a)
         k = jnp.asarray(b, a.center.dtype)
+        # a NaN factor gives no value (empty), as in interval arithmetic
         return _guard_unbounded(Affine(k * a.center, k[..., None] * a.dev,
-                                       ia._times(jnp.abs(k), a.err), a.defined), a)
+                                       ia._times(jnp.abs(k), a.err), a.defined), a,
+                                as_affine(k, a.n), fallback=ia.mul(_range(a), k))
     a, b = _lift(a, b)
     c = a.center * b.center
     dev = a.center[..., None] * b.dev + b.center[..., None] * a.dev
     err = (ia._times(jnp.abs(a.center), b.err) + ia._times(jnp.abs(b.center), a.err)
            + ia._times(radius(a), radius(b)))
-    return _guard_unbounded(Affine(c, dev, err, _flag(a, b)), a, b)
+    return _guard_unbounded(Affine(c, dev, err, _flag(a, b)), a, b,
+                            fallback=ia.mul(_range(a), _range(b)))
 
 
 def square(a) -> Affine:
@@ -117,7 +127,7 @@ def square(a) -> Affine:
     c = a.center * a.center + half_r2
     dev = 2.0 * a.center[..., None] * a.dev
     err = 2.0 * ia._times(jnp.abs(a.center), a.err) + half_r2
-    return _guard_unbounded(Affine(c, dev, err, a.defined), a)
+    return _guard_unbounded(Affine(c, dev, err, a.defined), a, fallback=ia.square(_range(a)))
 
 
 def _linearized(x: Affine, alpha, d_lo, d_hi, fallback_iv: Interval, defined) -> Affine:
@@ -178,14 +188,33 @@ def _minrange(x: Affine, g, alpha, iv: Interval, fallback_iv: Interval) -> Affin
                        fallback_iv, iv.defined & x.defined)
 
 
+# `recip` linearises by Chebyshev only while |hi| <= _RECIP_RATIO |lo| (a range away
+# from the pole): there the form's range stays within 2 sqrt(r) - r >= 83% of the least
+# value 1/|hi|. Nearer the pole the chord is so steep that the form reaches far past 0
+# (below 1/|hi| by (1/sqrt|lo| - 1/sqrt|hi|)^2, the sign lost for r > 4), so `1/x - y`
+# would "contain" a root on pieces next to the asymptote; min-range keeps the range.
+_RECIP_RATIO = 2.0
+
+
 def recip(a) -> Affine:
+    """1 / a: Chebyshev on a range away from 0, min-range (slope ``-1/mag^2``, the
+    form's range is ``[1/hi, 1/lo]``) near the pole, unbounded (interval rule) when the
+    range touches 0."""
     (a,) = _lift(a)
     iv = _range(a)
     positive = iv.lo > 0
+    fallback = ia.recip(iv)
     out = _chebyshev(a, lambda v: 1.0 / v, lambda v: -1.0 / (v * v),
                      lambda al: jnp.where(positive, 1.0, -1.0) * jnp.sqrt(-1.0 / al),
-                     positive, iv, ia.recip(iv))
-    return _select((iv.lo > 0) | (iv.hi < 0), out, _interval_fallback(ia.recip(iv), a.n))
+                     positive, iv, fallback)
+    # min-range: g - alpha x is non-increasing for alpha >= -1/mag^2; alpha rounded
+    # toward 0 by a few ulps keeps it so
+    m = ia.mag(iv)
+    eps = float(jnp.finfo(m.dtype).eps)
+    alpha = -(1.0 / (m * m)) * (1.0 - 4.0 * eps)
+    near_pole = _minrange(a, lambda v: 1.0 / v, alpha, iv, fallback)
+    out = _select(m <= _RECIP_RATIO * ia.mig(iv), out, near_pole)
+    return _select((iv.lo > 0) | (iv.hi < 0), out, _interval_fallback(fallback, a.n))
 
 
 def div(a, b) -> Affine:
@@ -343,8 +372,12 @@ def cbrt(a) -> Affine:
 
 def _via_interval(fn):
     def rule(*args):
-        args = _lift(*args)
-        return _interval_fallback(fn(*[_range(x) for x in args]), args[0].n)
+        # constants stay exact points: lifted, `_range` would pad them by an ulp, and
+        # rules that are exact for a point operand (fmod by a constant within one
+        # period) would fall back to their loose bound (x // 0.5, remainder, fmod)
+        n = _n_of(*args)
+        return _interval_fallback(
+            fn(*[_range(x) if isinstance(x, Affine) else ia.as_interval(x) for x in args]), n)
 
     rule.__name__ = fn.__name__
     rule.__doc__ = f"{fn.__name__} through Interval (correlation not kept)."

@@ -85,13 +85,15 @@ def to_interval(x: Affine) -> Interval:
 def _range(x: Affine) -> Interval:
     """`to_interval` padded by an ulp of ``|center| + rad``: the range the rules work on.
     Rounding ``center +- rad`` to nearest can cut into the set (far from 0 the centre
-    cannot even hold a small endpoint), so internal conversions always pad."""
+    cannot even hold a small endpoint), so internal conversions pad all but exact points."""
     iv = to_interval(x)
     finfo = jnp.finfo(jnp.result_type(x.center))
     pad = float(finfo.eps) * jnp.abs(x.center) + float(finfo.eps) * radius(x) + float(
         finfo.tiny)  # two terms: their sum could overflow near the float32 maximum
-    # overflowed (NaN: iv is already entire) or an infinite point (exact): no pad
-    pad = jnp.where(jnp.isnan(x.center) | jnp.isinf(x.center), 0.0, pad)
+    # overflowed (NaN: iv is already entire), an infinite point or any exact point
+    # (centre +- 0 is not rounded: floor(x) = [k, k] must compare with 0 as IA does)
+    point = (x.err == 0) & jnp.all(x.dev == 0, axis=-1)
+    pad = jnp.where(jnp.isnan(x.center) | jnp.isinf(x.center) | point, 0.0, pad)
     return Interval(iv.lo - pad, iv.hi + pad, iv.defined)
 
 
@@ -130,7 +132,11 @@ def as_affine(x, n: int) -> Affine:
     x = jnp.asarray(x)
     if not jnp.issubdtype(x.dtype, jnp.floating):
         x = x.astype(jnp.float32)
-    return Affine(x, jnp.zeros(x.shape + (n,), x.dtype), jnp.zeros_like(x))
+    # a NaN constant (jnp.where(c, jnp.nan, f), log(-1) folded) is no value at all: the
+    # empty form (NaN error term), as the point interval [NaN, NaN] is empty -- not a
+    # NaN centre, which reads as an overflow, the entire line
+    err = jnp.where(jnp.isnan(x), jnp.nan, jnp.zeros_like(x))
+    return Affine(x, jnp.zeros(x.shape + (n,), x.dtype), err)
 
 
 def _n_of(*xs) -> int:
@@ -174,14 +180,21 @@ def _guard(result: Affine, fallback_iv: Interval) -> Affine:
     return _select(_finite(result), result, _interval_fallback(fallback_iv, result.n))
 
 
-def _guard_unbounded(result: Affine, *inputs: Affine) -> Affine:
-    """Overflow (or inf * 0) in a polynomial operation: the entire line; results of empty
+def _guard_unbounded(result: Affine, *inputs: Affine, fallback: Interval | None = None
+                     ) -> Affine:
+    """Overflow (or inf * 0) in a polynomial operation: the interval result `fallback`
+    lifted (an infinite point such as inf * [1, 2] stays that point, so a box where f is
+    +inf is rejected as in interval arithmetic) or else the entire line; results of empty
     (NaN) inputs stay empty."""
     empty = _is_empty(inputs[0])
     for x in inputs[1:]:
         empty = empty | _is_empty(x)
-    entire = Affine(jnp.zeros_like(result.center), jnp.zeros_like(result.dev),
-                    jnp.full_like(result.err, jnp.inf), result.defined)
-    out = _select(_finite(result) | empty, result, entire)
+    if fallback is None:
+        unbounded = Affine(jnp.zeros_like(result.center), jnp.zeros_like(result.dev),
+                           jnp.full_like(result.err, jnp.inf), result.defined)
+    else:
+        unbounded = _interval_fallback(fallback, result.n)
+        unbounded = Affine(unbounded.center, unbounded.dev, unbounded.err, result.defined)
+    out = _select(_finite(result) | empty, result, unbounded)
     # 0 * (empty) must stay empty: the products above treat 0 * NaN as 0
     return Affine(out.center, out.dev, jnp.where(empty, jnp.nan, out.err), out.defined)

@@ -139,3 +139,50 @@ def hypot_interval(x, y) -> Interval:
 def hypot_affine(x, y) -> Affine:
     x, y = aa._lift(x, y)
     return aa.sqrt(aa.add(aa.square(x), aa.square(y)))
+
+
+# jnp.floor_divide by a constant float divisor b is the exact floor(a / b) while
+# |a / b| < 2^20: fmod is exact, the branch on the remainder's sign is exact, and the
+# quotient (a - fmod) / b rounds by far less than 1/2 before the final round.
+_FLOORDIV_EXACT = 2.0**20
+
+
+def floor_divide_interval(a, b):
+    """jnp.floor_divide of floats by a constant divisor: monotone in `a` (non-decreasing
+    for b > 0, non-increasing for b < 0), so the values at the endpoints where the
+    quotient is exact (see `_FLOORDIV_EXACT`); elsewhere floor of the interval quotient
+    widened by its rounding. Its jaxpr branches on the sign of fmod(a, b) and takes the
+    hull of two steps on a box across a jump. NotImplemented (the body is evaluated)
+    for a box-dependent divisor or integers."""
+    if is_lifted(b) or not isinstance(a, Interval):
+        return NotImplemented
+    b = jnp.asarray(b)
+    if not (jnp.issubdtype(a.lo.dtype, jnp.floating) and jnp.issubdtype(b.dtype, jnp.floating)):
+        return NotImplemented
+    b = b.astype(a.lo.dtype)
+    fd_lo, fd_hi = jnp.floor_divide(a.lo, b), jnp.floor_divide(a.hi, b)
+    exact_lo = jnp.where(b > 0, fd_lo, fd_hi)
+    exact_hi = jnp.where(b > 0, fd_hi, fd_lo)
+    # loose but sound: floor(a / b) rounded, the rounding of jnp's quotient allowed for
+    q = ia.div(a, ia.point(b))
+    eps = float(jnp.finfo(a.lo.dtype).eps)
+    big = float(jnp.finfo(a.lo.dtype).max)
+    # an overflowed quotient end (+inf lower, -inf upper) stands for a finite real beyond
+    # the largest float: bound it by that float (inf - inf would be NaN)
+    loose_lo = jnp.where(q.lo == jnp.inf, big,
+                         jnp.floor(q.lo) - 2.0 - 8.0 * eps * jnp.abs(q.lo))
+    loose_hi = jnp.where(q.hi == -jnp.inf, -big,
+                         jnp.floor(q.hi) + 1.0 + 8.0 * eps * jnp.abs(q.hi))
+    exact = (jnp.isfinite(b) & (b != 0) & (ia.mag(a) < _FLOORDIV_EXACT * jnp.abs(b)))
+    lo = jnp.where(exact, exact_lo, loose_lo)
+    hi = jnp.where(exact, exact_hi, loose_hi)
+    lo, hi = ia._same_nan(lo, hi, a.lo, a.hi, q.lo)
+    return ia._make(lo, hi, a, q)
+
+
+def floor_divide_affine(a, b):
+    """`floor_divide_interval` on the range of `a` (correlation not kept)."""
+    if is_lifted(b) or not isinstance(a, Affine):
+        return floor_divide_interval(a, b) if isinstance(a, Interval) else NotImplemented
+    out = floor_divide_interval(aa._range(a), b)
+    return NotImplemented if out is NotImplemented else aa.from_interval(out, None, a.n)

@@ -32,7 +32,15 @@ from ._affine import Affine
 from ._array_rules import move_data
 from ._interval import Interval
 from ._lift import is_lifted, shape_of
-from ._rules import ARITHMETICS, BY_ARITHMETIC, NAMED_CALLS, NO_RULE, RULES, register_rule
+from ._rules import (
+    ARITHMETICS,
+    BY_ARITHMETIC,
+    INTERVAL_CALLS,
+    NAMED_CALLS,
+    NO_RULE,
+    RULES,
+    register_rule,
+)
 
 __all__ = ["extend", "register_rule", "ARITHMETICS", "ROUNDINGS"]
 
@@ -198,8 +206,11 @@ def _apply(eqn, invals, ctx: _Context) -> list:
         named = NAMED_CALLS.get(str(params.get("name", "")))
         if named is not None:  # chosen by the context's arithmetic; takes no params
             out = getattr(named, ctx.arithmetic)(*invals)
-            return [_round(ctx, out, *named.rounding(invals, params))]
+            if out is not NotImplemented:  # else: the operands it does not cover
+                return [_round(ctx, out, *named.rounding(invals, params))]
         jaxpr, consts = _closed(body)
+        if ctx.arithmetic == "affine" and str(params.get("name", "")) in INTERVAL_CALLS:
+            return _in_interval(jaxpr, consts, invals, ctx)
         return _eval_jaxpr(jaxpr, consts, invals, ctx)
     record = RULES.get(name, NO_RULE)
     if record.same_args is not None and len(invals) == 2 and invals[0] is invals[1]:
@@ -221,6 +232,17 @@ def _apply(eqn, invals, ctx: _Context) -> list:
     if not ctx.outward:
         return [out]
     return [_round(ctx, out, *record.rounding(invals, params))]
+
+
+def _in_interval(jaxpr, consts, invals, ctx: _Context) -> list:
+    """A call body evaluated in interval arithmetic on the affine operands' ranges; float
+    results come back as affine forms on the error term (correlation not kept)."""
+    n = aa._n_of(*invals)
+    ranged = [aa._range(x) if isinstance(x, Affine) else x for x in invals]
+    outs = _eval_jaxpr(jaxpr, consts, ranged, dataclasses.replace(ctx, arithmetic="interval"))
+    return [aa.from_interval(o, None, n)
+            if isinstance(o, Interval) and jnp.issubdtype(o.dtype, jnp.floating) else o
+            for o in outs]
 
 
 def _round(ctx: _Context, out, ulps, scale=None):

@@ -24,7 +24,8 @@ from . import _interval as ia
 from . import _ulps
 from ._interval import Interval
 
-__all__ = ["Rule", "RULES", "NAMED_CALLS", "BY_ARITHMETIC", "ARITHMETICS", "register_rule"]
+__all__ = ["Rule", "RULES", "NAMED_CALLS", "INTERVAL_CALLS", "BY_ARITHMETIC", "ARITHMETICS",
+           "register_rule"]
 
 ARITHMETICS = ("interval", "affine")
 
@@ -67,6 +68,12 @@ RULES: dict[str, Rule] = {}
 # jit-wrapped library functions with a tighter rule than their body, by their jit name;
 # these rules take no params.
 NAMED_CALLS: dict[str, Rule] = {}
+# jit-wrapped library functions that affine mode evaluates in interval arithmetic on the
+# ranges of their operands (the result lifted back on the error term): piecewise bodies
+# that branch on the sign of a remainder. An interval-fallback result carries its range
+# as centre +- radius, padded by an ulp, so a remainder in [0, r] would compare with 0 as
+# "unknown" and select the hull of both branches (x // 0.5 an extra step wide).
+INTERVAL_CALLS: frozenset[str] = frozenset({"remainder", "floor_divide", "divmod"})
 
 
 class _ArithmeticView(MutableMapping):
@@ -246,3 +253,11 @@ RULES["dot_general"] = Rule(ar.dot_interval, ar.dot_affine, ulps=_ulps.dot_gener
 
 NAMED_CALLS["hypot"] = Rule(ar.hypot_interval, ar.hypot_affine,
                             ulps=2.0 * _ulps.TRANSCENDENTAL)
+# x // c: monotone in x by a constant c (its body takes the hull of two steps at a jump);
+# returns NotImplemented for other operands, whose body is then evaluated
+NAMED_CALLS["floor_divide"] = Rule(ar.floor_divide_interval, ar.floor_divide_affine,
+                                   ulps=0.0)
+# jnp.trunc: its body is where(x < 0, ceil, floor), the hull [-1, 1] on a box across 0
+# where trunc is 0; trunc itself is non-decreasing
+_trunc = ia.monotone_increasing(jnp.trunc)
+NAMED_CALLS["trunc"] = Rule(_trunc, aa._via_interval(_trunc))
