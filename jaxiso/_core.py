@@ -19,7 +19,8 @@ import numpy as np
 
 __all__ = ["Rays", "Hits", "Plan", "Scene", "SceneFields", "pytree_dataclass", "static_field",
            "slab", "facing", "unit_or_facing", "on_points", "attach_t", "miss_like",
-           "concrete", "check_finite", "check_choice", "cpu_lanes"]
+           "concrete", "check_finite", "check_choice", "check_count", "isovalues_array",
+           "cpu_lanes"]
 
 
 # -- the one pytree mechanism ---------------------------------------------------------
@@ -103,6 +104,26 @@ def check_finite(name: str, x) -> None:
     a = concrete(x)
     if a is not None and not np.all(np.isfinite(a)):
         raise ValueError(f"{name} must be finite, got {a}")
+
+
+def isovalues_array(x) -> jax.Array:
+    """Isovalues as float32 [K], K >= 1, finite where concrete (every scene kind)."""
+    iso = jnp.atleast_1d(jnp.asarray(x, jnp.float32))
+    if iso.ndim != 1 or iso.size == 0:
+        raise ValueError(f"isovalues must be a scalar or a non-empty 1-D list, got shape "
+                         f"{iso.shape}")
+    check_finite("isovalues", iso)
+    return iso
+
+
+def check_count(name: str, value, least: int = 1, optional: bool = True) -> None:
+    """A static whole-number option (max_steps, samples, ...): an int >= least, or None
+    where optional."""
+    if value is None and optional:
+        return
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+        none = "None or " if optional else ""
+        raise ValueError(f"{name} must be {none}an int >= {least}, got {value!r}")
 
 
 def check_choice(name: str, value, choices) -> None:

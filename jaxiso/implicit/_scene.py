@@ -21,8 +21,10 @@ from .._core import (
     SceneFields,
     attach_t,
     check_choice,
+    check_count,
     concrete,
     cpu_lanes,
+    isovalues_array,
     pytree_dataclass,
     static_field,
 )
@@ -156,11 +158,7 @@ class ImplicitSurface(_ImplicitOptions):
     def _validate(self):
         if not callable(self.f):
             raise TypeError(f"f must be callable, got {type(self.f).__name__}")
-        iso = jnp.atleast_1d(jnp.asarray(self.isovalues, jnp.float32))
-        if iso.ndim != 1 or iso.shape[0] == 0:
-            raise ValueError(f"isovalues must be a non-empty 1-D sequence, got shape "
-                             f"{iso.shape}")
-        object.__setattr__(self, "isovalues", iso)
+        object.__setattr__(self, "isovalues", isovalues_array(self.isovalues))
         super()._validate()
         # fail early on a bad signature
         as_field(self.f, self.has_params)
@@ -337,12 +335,10 @@ def _check_static(scene) -> None:
                           or not np.isfinite(n) or n <= 0):
         raise ValueError(f"normals must be None (jax.grad) or a positive stencil width, "
                          f"got {n!r}")
-    for name, least in (("max_steps", 1), ("samples", 2), ("refine_steps", 1)):
-        if not hasattr(scene, name) or (getattr(scene, name) is None and name != "samples"):
-            continue
-        v = getattr(scene, name)
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < least:
-            raise ValueError(f"{name} must be an int >= {least}, got {v!r}")
+    check_count("max_steps", scene.max_steps)
+    check_count("refine_steps", getattr(scene, "refine_steps", None))
+    if hasattr(scene, "samples"):
+        check_count("samples", scene.samples, least=2, optional=False)
     if scene.method == "sphere" and getattr(scene, "lipschitz", None) is None:
         raise ValueError("method 'sphere' needs a Lipschitz bound of f: "
                          "lipschitz=L on the scene")

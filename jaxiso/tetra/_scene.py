@@ -21,9 +21,10 @@ from .._core import (
     Plan,
     SceneFields,
     check_choice,
-    check_finite,
+    check_count,
     concrete,
     cpu_lanes,
+    isovalues_array,
     pytree_dataclass,
     slab,
     static_field,
@@ -90,9 +91,6 @@ class TetIsosurface(SceneFields):
         elif not isinstance(bvh, BVH):
             raise TypeError(f"bvh must be 'bih', 'sah' or a BVH, got {type(bvh).__name__}")
         bvh = jax.tree_util.tree_map(jnp.asarray, bvh)  # traversal indexes with tracers
-        iso = jnp.atleast_1d(jnp.asarray(isovalues, jnp.float32))
-        if iso.ndim != 1 or iso.size == 0 or not np.all(np.isfinite(np.asarray(iso))):
-            raise ValueError(f"isovalues must be a finite scalar or 1-D list, got {isovalues}")
         # no clip box: no clipping at all (a surface on the mesh's own boundary faces must
         # not be lost to the rounding of a box test against that same face)
         lo, hi = np.full(3, -np.inf, np.float32), np.full(3, np.inf, np.float32)
@@ -100,7 +98,7 @@ class TetIsosurface(SceneFields):
             lo, hi = (np.broadcast_to(np.asarray(c, np.float32), (3,)) for c in clip_box)
             if np.any(lo > hi):
                 raise ValueError(f"clip box needs lo <= hi, got {lo} and {hi}")
-        values = {"mesh": mesh, "bvh": bvh, "isovalues": iso,
+        values = {"mesh": mesh, "bvh": bvh, "isovalues": isovalues,
                   "time_step": jnp.int32(step), "clip_lo": jnp.asarray(lo, jnp.float32),
                   "clip_hi": jnp.asarray(hi, jnp.float32), "vertex_gradients": None,
                   "normals": normals, "max_steps": max_steps}
@@ -117,11 +115,7 @@ class TetIsosurface(SceneFields):
         if self.normals == "smooth" and self.vertex_gradients is None:
             raise ValueError("smooth normals need vertex gradients: build the scene with "
                              "TetIsosurface(mesh, ..., normals='smooth')")
-        iso = jnp.atleast_1d(jnp.asarray(self.isovalues, jnp.float32))
-        if iso.ndim != 1 or iso.size == 0:
-            raise ValueError(f"isovalues must be a scalar or a 1-D list, got shape {iso.shape}")
-        check_finite("isovalues", iso)
-        object.__setattr__(self, "isovalues", iso)
+        object.__setattr__(self, "isovalues", isovalues_array(self.isovalues))
         lo, hi = (jnp.asarray(getattr(self, n), jnp.float32) for n in ("clip_lo", "clip_hi"))
         lo_, hi_ = concrete(lo), concrete(hi)
         if lo_ is not None and hi_ is not None and (np.any(np.isnan(lo_)) or np.any(
@@ -129,10 +123,7 @@ class TetIsosurface(SceneFields):
             raise ValueError(f"clip box needs lo <= hi without NaN, got {lo_} and {hi_}")
         object.__setattr__(self, "clip_lo", lo)
         object.__setattr__(self, "clip_hi", hi)
-        m = self.max_steps
-        if m is not None and (isinstance(m, bool) or not isinstance(m, (int, np.integer))
-                              or m < 1):
-            raise ValueError(f"max_steps must be None or an int >= 1, got {m!r}")
+        check_count("max_steps", self.max_steps)
 
     # -- the renderer reads these
     @property

@@ -18,9 +18,11 @@ from .._core import (
     SceneFields,
     attach_t,
     check_choice,
+    check_count,
     check_finite,
     concrete,
     cpu_lanes,
+    isovalues_array,
     pytree_dataclass,
     slab,
     static_field,
@@ -103,15 +105,11 @@ class VolumeIsosurface(SceneFields):
             raise ValueError("level of detail needs an OctreeVolume")
         if lod is not None and not volume.multires:
             raise ValueError("level of detail needs a volume built with multires=True")
-        iso = jnp.atleast_1d(jnp.asarray(self.isovalues, jnp.float32))
-        if iso.ndim != 1 or iso.size == 0:
-            raise ValueError(f"isovalues must be a scalar or a 1-D list, got shape {iso.shape}")
-        check_finite("isovalues", iso)
-        object.__setattr__(self, "isovalues", iso)
+        object.__setattr__(self, "isovalues", isovalues_array(self.isovalues))
         for name in ("clip_lo", "clip_hi"):
             object.__setattr__(self, name, jnp.asarray(getattr(self, name), jnp.float32))
             check_finite(name, getattr(self, name))
-        _check_max_steps(self.max_steps)
+        check_count("max_steps", self.max_steps)
 
     @property
     def lo(self):
@@ -250,9 +248,3 @@ def _check_box(lo, hi):
         return
     if np.any(lo_ > hi_):
         raise ValueError(f"clip box needs lo <= hi, got {lo_} and {hi_}")
-
-
-def _check_max_steps(max_steps):
-    if max_steps is not None and (isinstance(max_steps, bool) or not isinstance(
-            max_steps, (int, np.integer)) or max_steps < 1):
-        raise ValueError(f"max_steps must be None or an int >= 1, got {max_steps!r}")
