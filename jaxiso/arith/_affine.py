@@ -21,7 +21,8 @@ accumulated error term. ``n = 1`` is the seed's float3 form (Algorithm 6).
   correlation lost), as the seed does for its GPU RAA (Sec. 6.5.4); constant operands
   stay exact points there. `extend` runs the bodies of jnp.remainder / floor_divide /
   divmod in interval arithmetic (`_rules.INTERVAL_CALLS`).
-* min/max use the exact identity ``max(a, b) = (a + b + |a - b|) / 2``.
+* min/max return an operand exactly where their difference has a sign, and else
+  ``b + relu(a - b)`` with relu's chord (`relu`), so a neuron that is off drops its error.
 * Comparisons return the three-valued `Interval` of bools of the interval module; `where`
   keeps the chosen branch exactly and takes the hull where the condition is unknown.
 
@@ -251,14 +252,37 @@ def abs(a) -> Affine:  # noqa: A001
     return _linearized(a, alpha, jnp.zeros_like(d_hi) - pad, d_hi + pad, ia.abs(iv), a.defined)
 
 
+def relu(a) -> Affine:
+    """max(x, 0): exactly x (error term included) where the range is >= 0, exactly 0
+    where it is <= 0, and across 0 the chord ``alpha = hi / (hi - lo)``, whose residual
+    ``relu(x) - alpha x`` lies in ``[0, -alpha lo]`` (largest at both ends). The form's
+    own error term is scaled by alpha, so a neuron that is off drops it entirely: the
+    error of a network's layer does not pass through neurons it cannot reach."""
+    (a,) = _lift(a)
+    iv = _range(a)
+    lo, hi = iv.lo, iv.hi
+    across = (lo < 0) & (hi > 0)
+    w = jnp.where(across, hi - lo, 1.0)
+    alpha = jnp.where(across, jnp.clip(hi / w, 0.0, 1.0), (lo >= 0).astype(lo.dtype))
+    d_hi = jnp.where(across, -alpha * lo, 0.0)
+    pad = jnp.where(across, _pad(jnp.abs(lo) + jnp.abs(hi), lo.dtype), 0.0)
+    out = _linearized(a, alpha, -pad, d_hi + pad, ia.maximum(iv, 0.0), a.defined)
+    # off: the point 0 (NaN inputs stay empty through `_linearized`'s alpha * NaN)
+    return out
+
+
 def maximum(a, b) -> Affine:
+    """max(a, b) = b + relu(a - b): exactly a or b where the difference has a sign."""
     a, b = _lift(a, b)
-    return mul(0.5, add(add(a, b), abs(sub(a, b))))
+    d = _range(sub(a, b))
+    return _select(d.lo >= 0, a, _select(d.hi <= 0, b, add(b, relu(sub(a, b)))))
 
 
 def minimum(a, b) -> Affine:
+    """min(a, b) = a - relu(a - b): exactly a or b where the difference has a sign."""
     a, b = _lift(a, b)
-    return mul(0.5, sub(add(a, b), abs(sub(a, b))))
+    d = _range(sub(a, b))
+    return _select(d.lo >= 0, b, _select(d.hi <= 0, a, sub(a, relu(sub(a, b)))))
 
 
 def clamp(lower, x, upper) -> Affine:

@@ -2,6 +2,7 @@
 
 from . import csg, surfaces
 from ._scene import ImplicitSurface
+from .mlp import MLP, load_mlp
 from .vm import VMProgram, load_vm
 
-__all__ = ["surfaces", "ImplicitSurface", "csg", "load_vm", "VMProgram"]
+__all__ = ["surfaces", "ImplicitSurface", "csg", "load_vm", "VMProgram", "load_mlp", "MLP"]
