@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 
 from . import _affine as aa
 from . import _interval as ia
 from ._affine import Affine
 from ._interval import Interval
-from ._lift import is_lifted
+from ._lift import is_lifted, shape_of
 
 
 def move_data(prim, params, invals, operands: slice):
@@ -186,3 +187,53 @@ def floor_divide_affine(a, b):
         return floor_divide_interval(a, b) if isinstance(a, Interval) else NotImplemented
     out = floor_divide_interval(aa._range(a), b)
     return NotImplemented if out is NotImplemented else aa.from_interval(out, None, a.n)
+
+
+def _elu_alpha(body, x, rest):
+    """elu's alpha from its body, a point function of (x, *rest): elu(-1) = alpha (e^-1 -
+    1); None when it is not a concrete non-negative number (a traced or lifted alpha:
+    then the body is evaluated instead)."""
+    if any(is_lifted(r) for r in rest):
+        return None
+    try:
+        # eagerly even under jit (the body's constants are concrete); the probe has the
+        # body's own operand shape
+        with jax.ensure_compile_time_eval():
+            probe = jnp.full(shape_of(x), -1.0, jnp.float32)
+            alpha = float(jnp.ravel(body(probe, *rest)[0])[0]) / float(np.expm1(-1.0))
+    except (jax.errors.ConcretizationTypeError, TypeError):
+        return None
+    return alpha if np.isfinite(alpha) and alpha >= 0 else None
+
+
+def _elu(alpha):
+    return lambda x: jnp.where(x > 0, x, alpha * jnp.expm1(jnp.minimum(x, 0.0)))
+
+
+def elu_interval(x, *rest, body):
+    """jax.nn.elu: non-decreasing for alpha >= 0, so ``[elu(lo), elu(hi)]``."""
+    alpha = _elu_alpha(body, x, rest)
+    if alpha is None or not isinstance(x, Interval):
+        return NotImplemented
+    return ia.monotone_increasing(_elu(alpha))(x)
+
+
+def elu_affine(x, *rest, body):
+    """jax.nn.elu with 0 < alpha <= 1: convex (slope alpha e^x below 0, 1 above), so the
+    Chebyshev linearisation keeps the form's correlation; other alphas: its monotone
+    range on the error term."""
+    alpha = _elu_alpha(body, x, rest)
+    if alpha is None or not isinstance(x, Affine):
+        return NotImplemented
+    g = _elu(alpha)
+    if not 0 < alpha <= 1:  # not convex: the monotone range, correlation dropped
+        return aa.from_interval(ia.monotone_increasing(g)(aa._range(x)), None, x.n)
+
+    def dg(v):
+        return jnp.where(v > 0, 1.0, alpha * jnp.exp(jnp.minimum(v, 0.0)))
+
+    def dg_inv(slope):  # the tangent point of a chord's slope (the kink 0 above alpha)
+        return jnp.where(slope < alpha, jnp.log(jnp.maximum(slope, 1e-30) / alpha), 0.0)
+
+    iv = aa._range(x)
+    return aa._chebyshev(x, g, dg, dg_inv, True, iv, ia.monotone_increasing(g)(iv))

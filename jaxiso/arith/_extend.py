@@ -162,6 +162,10 @@ def _closed(j):
     return j, ()
 
 
+def _as_closed(body):
+    return body if isinstance(body, jcore.ClosedJaxpr) else jcore.ClosedJaxpr(body, ())
+
+
 def _call_body(eqn):
     for key in _CALL_JAXPR_KEYS:
         body = eqn.params.get(key)
@@ -205,7 +209,9 @@ def _apply(eqn, invals, ctx: _Context) -> list:
     if body is not None:
         named = NAMED_CALLS.get(str(params.get("name", "")))
         if named is not None:  # chosen by the context's arithmetic; takes no params
-            out = getattr(named, ctx.arithmetic)(*invals)
+            rule = getattr(named, ctx.arithmetic)
+            out = (rule(*invals, body=jcore.jaxpr_as_fun(_as_closed(body))) if named.with_body
+                   else rule(*invals))
             if out is not NotImplemented:  # else: the operands it does not cover
                 return [_round(ctx, out, *named.rounding(invals, params))]
         jaxpr, consts = _closed(body)

@@ -47,6 +47,8 @@ class Rule:
       data_operands: primitives that only move data: the slice of their operands that
         carry values (the primitive is applied to each component; the others are
         constant indices), or None.
+      with_body: named calls only: the rule is called with ``body=fn``, the library
+        function itself on points (to read constants such as elu's alpha from it).
     """
 
     interval: Callable | None = None
@@ -55,6 +57,7 @@ class Rule:
     scale: Callable | None = None
     same_args: bool | None = None
     data_operands: slice | None = None
+    with_body: bool = False  # named calls: the rule also gets ``body=`` its point function
 
     def rounding(self, invals, params):
         """(ulps, scale) of the result for these operands."""
@@ -255,6 +258,11 @@ NAMED_CALLS["hypot"] = Rule(ar.hypot_interval, ar.hypot_affine,
                             ulps=2.0 * _ulps.TRANSCENDENTAL)
 # x // c: monotone in x by a constant c (its body takes the hull of two steps at a jump);
 # returns NotImplemented for other operands, whose body is then evaluated
+# jax.nn.elu: its body is where(x > 0, x, alpha * expm1(where(x > 0, 0, x))), whose hull
+# across 0 takes expm1 of the whole range (bunny: pieces unbounded, hits lost); elu is
+# non-decreasing, and convex for 0 < alpha <= 1 (alpha is read from the body)
+NAMED_CALLS["elu"] = Rule(ar.elu_interval, ar.elu_affine, ulps=_ulps.TRANSCENDENTAL,
+                          with_body=True)
 NAMED_CALLS["floor_divide"] = Rule(ar.floor_divide_interval, ar.floor_divide_affine,
                                    ulps=0.0)
 # jnp.trunc: its body is where(x < 0, ceil, floor), the hull [-1, 1] on a box across 0

@@ -40,6 +40,20 @@ class BoxTest(typing.NamedTuple):
     possible: jax.Array
     finite: jax.Array
     small: jax.Array
+    start: jax.Array | float = 0.0  # no root in the piece's first `start` fraction
+
+
+def _skip_descend(k, d, dmax, start):
+    """The piece to descend to from (k, d) when its first `start` fraction holds no root:
+    the child at depth d + j containing that point, with j = 1 + floor(-log2(1 - start))
+    (clamped to [1, dmax - d]), so a skip past half the piece lands in a quarter, past
+    15/16 in a 32nd. start 0 is the plain descent to (2k, d + 1). Every piece before the
+    landing one lies in the skipped part; the walk pops back up through the rest."""
+    start = jnp.clip(jnp.asarray(start, jnp.float32), 0.0, 0.999)
+    j = 1 + jnp.floor(-jnp.log2(1.0 - start)).astype(jnp.int32)
+    j = jnp.clip(j, 1, jnp.maximum(dmax - d, 1))
+    first = jnp.floor(start * (1 << j).astype(jnp.float32)).astype(jnp.int32)
+    return (k << j) + jnp.minimum(first, (1 << j) - 1), d + j
 
 
 class Result(typing.NamedTuple):
@@ -109,6 +123,9 @@ def _t_step(test, st):
     accept = r.possible & r.finite & ((d >= st["dmax"]) | r.small)
     descend = r.possible & ~accept & (d < st["dmax"])
     k_new, d_new, finished = advance(k, d, accept, descend)
+    k_skip, d_skip = _skip_descend(k, d, st["dmax"], r.start)
+    k_new = jnp.where(descend, k_skip, k_new)
+    d_new = jnp.where(descend, d_skip, d_new)
     return dict(st, k=jnp.where(go, k_new, k), d=jnp.where(go, d_new, d),
                 going=go & ~finished, hit=st["hit"] | (go & accept),
                 steps=st["steps"] + go.astype(jnp.int32))
@@ -119,7 +136,36 @@ def _t_result(out) -> Result:
     return Result(jnp.where(out["hit"], s, jnp.inf), out["hit"], out["steps"])
 
 
-def t_bisect(test, d_max, active, max_steps: int) -> Result:
+def _verified_rounds(run, verify, state, rounds: int):
+    """Run the walk (`run`: state -> state), then check each ray's accepted piece with
+    `verify` (state -> bool, True: a root is established there); a ray whose piece fails
+    moves on to the next piece and walks again, for at most `rounds` walks. A ray still
+    holding an unverified piece after the last walk reports no hit."""
+    if verify is None:
+        return run(state)
+
+    def body(carry):
+        r, st = carry
+        out = run(st)
+        bad = out["hit"] & ~verify(out)
+        no = jnp.zeros_like(bad)
+        k_next, d_next, end = advance(out["k"], out["d"], no, no)
+        return r + 1, dict(out, k=jnp.where(bad, k_next, out["k"]),
+                           d=jnp.where(bad, d_next, out["d"]), hit=out["hit"] & ~bad,
+                           going=bad & ~end)
+
+    def cond(carry):
+        r, st = carry
+        return (r == 0) | (jnp.any(st["going"]) & (r < rounds))
+
+    _, out = lax.while_loop(cond, body, (jnp.int32(0), state))
+    return out
+
+
+VERIFY_ROUNDS = 64  # walks per ray; each unverified piece costs one
+
+
+def t_bisect(test, d_max, active, max_steps: int, verify=None) -> Result:
     """Stackless bisection of one ray's segment (call under vmap for a packet: one
     batched loop, until the packet's slowest ray is done).
 
@@ -128,13 +174,21 @@ def t_bisect(test, d_max, active, max_steps: int) -> Result:
       d_max: int32 depth at which a possible piece counts as a hit (Eq. 6.19).
       active: bool, False for rays that miss the domain.
       max_steps: static bound on loop iterations (a ray that runs out reports no hit).
+      verify: None (a piece whose enclosure holds an isovalue at depth d_max is the hit,
+        the seed's rule) or ``verify(s0, s1) -> bool``: such a piece is the hit only when
+        verify establishes a root in it; otherwise the walk goes on past it.
     """
-    out = run_rays(functools.partial(_t_step, test), lambda st: st["going"],
-                   _t_start(d_max, active), _T_RESULTS, max_steps=max_steps, steps="steps")
-    return _t_result(out)
+    keys = _T_RESULTS + ("going", "dmax")
+
+    def run(st):
+        return run_rays(functools.partial(_t_step, test), lambda s: s["going"], st, keys,
+                        max_steps=max_steps, steps="steps")
+
+    check = None if verify is None else (lambda st: verify(*piece(st["k"], st["d"])))
+    return _t_result(_verified_rounds(run, check, _t_start(d_max, active), VERIFY_ROUNDS))
 
 
-def k_bisect(test, k_enter, k_exit, d_max, active, max_steps: int) -> Result:
+def k_bisect(test, k_enter, k_exit, d_max, active, max_steps: int, verify=None) -> Result:
     """Packet bisection in lockstep along the dominant axis K (Sec. 6.4.3).
 
     The packet's K range [K0, K1] (union of its rays' ranges) is bisected with one shared
@@ -148,6 +202,8 @@ def k_bisect(test, k_enter, k_exit, d_max, active, max_steps: int) -> Result:
       d_max: [P] int32 per-ray depth for the precision eps (Eq. 6.16-6.17: the packet
         uses the deepest).
       active: [P] bool.
+      verify: None or ``verify(s0, s1) -> [P] bool`` (as in `t_bisect`): a ray accepts
+        a piece only where it holds; elsewhere it goes on with the packet.
     Returns per-ray `Result` ([P]).
     """
     big = jnp.float32(3e38)
@@ -187,6 +243,8 @@ def k_bisect(test, k_enter, k_exit, d_max, active, max_steps: int) -> Result:
         r = test(s0, s1)
         cand = live & inside & r.possible
         accept = cand & r.finite & ((d >= d_stop) | r.small)
+        if verify is not None:
+            accept = accept & verify(s0, s1)
         hit = hit | accept
         s_hit = jnp.where(accept, 0.5 * (s0 + s1), s_hit)
         live = live & ~accept
@@ -201,7 +259,8 @@ def k_bisect(test, k_enter, k_exit, d_max, active, max_steps: int) -> Result:
     return Result(s_hit, hit, jnp.broadcast_to(steps, n))
 
 
-def t_bisect_lanes(test, p, D, d_max, active, lanes: int | None, max_steps: int) -> Result:
+def t_bisect_lanes(test, p, D, d_max, active, lanes: int | None, max_steps: int,
+                   verify=None) -> Result:
     """t-bisection of a batch of rays [N] on `lanes` persistent lanes with refill
     (`jaxiso._lanes.run_rays`; rays that miss the domain never enter the queue), or, with
     lanes None, one loop over the batch. Same per-ray step and results as `t_bisect`.
@@ -214,10 +273,20 @@ def t_bisect_lanes(test, p, D, d_max, active, lanes: int | None, max_steps: int)
       p, D: [N, 3] ray segment start and vector; d_max: [N] int32; active: [N] bool.
       lanes: static number of lanes of the first phase, or None.
       max_steps: static bound on iterations per ray.
+      verify: None or ``verify(p, D, s0, s1) -> [N] bool`` (as in `t_bisect`), run once
+        per walk on every ray's accepted piece, outside the lanes.
     """
     def step(st):
         return _t_step(lambda s0, s1: test(st["p"], st["D"], s0, s1), st)
 
-    out = run_rays(step, lambda st: st["going"], dict(_t_start(d_max, active), p=p, D=D),
-                   _T_RESULTS, max_steps=max_steps, steps="steps", lanes=lanes)
-    return _t_result(out)
+    keys = _T_RESULTS + ("going", "dmax")
+
+    def run(st):
+        out = run_rays(step, lambda s: s["going"], st, keys, max_steps=max_steps,
+                       steps="steps", lanes=lanes)
+        return dict(out, p=p, D=D)
+
+    check = None if verify is None else (
+        lambda st: verify(p, D, *piece(st["k"], st["d"])))
+    state = dict(_t_start(d_max, active), p=p, D=D)
+    return _t_result(_verified_rounds(run, check, state, VERIFY_ROUNDS))

@@ -28,16 +28,20 @@ from .._core import (
     pytree_dataclass,
     static_field,
 )
+from ..arith import Affine, aa
 from . import _bisect
+from ._auto import choose_arithmetic
 from ._field import (
+    VERIFY,
     as_field,
     contains_any,
-    enclosure,
     extended,
+    first_root_fraction,
     on_points,
     point_normal,
     ray_boxes,
     ray_segments,
+    root_check,
 )
 
 __all__ = ["ImplicitSurface", "METHODS", "ARITHMETICS"]
@@ -72,8 +76,10 @@ class _ImplicitOptions(SceneFields):
         """Normalise and check the fields (construction and every `replace`)."""
         set_ = functools.partial(object.__setattr__, self)
         check_choice("method", self.method, self._methods)
-        check_choice("arithmetic", self.arithmetic, ARITHMETICS)
+        check_choice("arithmetic", self.arithmetic, self._arithmetics)
         check_choice("rounding", self.rounding, ROUNDINGS)
+        if hasattr(self, "verify"):
+            check_choice("verify", self.verify, VERIFY)
         lo = jnp.asarray(self.lo, jnp.float32)
         hi = jnp.asarray(self.hi, jnp.float32)
         if lo.shape != (3,) or hi.shape != (3,):
@@ -91,6 +97,8 @@ class _ImplicitOptions(SceneFields):
             set_("lipschitz", jnp.asarray(self.lipschitz, jnp.float32))
         _check_values(self)
         _check_static(self)
+
+    _arithmetics = ARITHMETICS
 
     @property
     def has_params(self) -> bool:
@@ -123,7 +131,10 @@ class ImplicitSurface(_ImplicitOptions):
     Static fields (a new value compiles anew):
       f: ``f(x, y, z[, w][, params])`` in plain jax.numpy on scalars (one point in, one
         number out; it need not broadcast over arrays: jaxiso vmaps it).
-      arithmetic: "interval" or "affine".
+      arithmetic: "auto" (default), "interval" or "affine". "auto" measures both on
+        sample ray pieces at construction and keeps the cheapest that is tight enough
+        (`jaxiso.implicit._auto`); the scene then holds the choice in `arithmetic` and
+        the measurement in `arithmetic_report`.
       method: "t-bisection" | "k-bisection" | "mitchell" | "sampling" | "sphere".
       rounding: "fast" (the seed) or "outward" (enclosures hold against exact arithmetic).
       normals: None (jax.grad of f) or the width of a central-difference stencil.
@@ -131,6 +142,13 @@ class ImplicitSurface(_ImplicitOptions):
         rays that run out report no hit and steps == max_steps.
       samples: point samples per ray ("sampling").
       refine_steps: point refinement iterations ("mitchell", "sampling"), None: default.
+      verify: when a piece counts as a hit (t- and K-bisection). "sign+distance"
+        (default): f - iso changes sign between the piece's ends, or the piece's midpoint
+        is within the piece's length of the level set at first order (|f - iso| <=
+        length |grad f|), which keeps surfaces that touch a level without crossing it
+        (Steiner's whiskers, the teardrop's cusp); "sign": a sign change only (a root is
+        proven; touching surfaces are missed); "none": the enclosure alone, the seed's
+        rule (a loose enclosure, e.g. of a deep network, becomes a false hit).
     """
 
     f: Callable = static_field()
@@ -140,7 +158,7 @@ class ImplicitSurface(_ImplicitOptions):
     isovalues: jax.Array = (0.0,)
     w: jax.Array = 0.0
     eps: jax.Array = DEFAULT_EPS
-    arithmetic: str = static_field("interval")
+    arithmetic: str = static_field("auto")
     method: str = static_field("t-bisection")
     delta: jax.Array = 0.0
     lipschitz: jax.Array | None = None
@@ -149,8 +167,11 @@ class ImplicitSurface(_ImplicitOptions):
     max_steps: int | None = static_field(None)
     samples: int = static_field(64)
     refine_steps: int | None = static_field(None)
+    verify: str = static_field("sign+distance")
+    arithmetic_report: str = static_field("")
 
     _methods = METHODS
+    _arithmetics = ARITHMETICS + ("auto",)
 
     def __post_init__(self):
         self._validate()
@@ -162,6 +183,11 @@ class ImplicitSurface(_ImplicitOptions):
         super()._validate()
         # fail early on a bad signature
         as_field(self.f, self.has_params)
+        if self.arithmetic == "auto":
+            pick, report = choose_arithmetic(self.field, self.lo, self.hi, self.w,
+                                             self.params, self.rounding)
+            object.__setattr__(self, "arithmetic", pick)
+            object.__setattr__(self, "arithmetic_report", report)
 
     @property
     def field(self):
@@ -211,16 +237,23 @@ def _interval_method(F, scene, p, D, inside, lanes=None):
 
     def test(p, D, s0, s1):
         boxes = ray_boxes(p, D, s0, s1, scene.arithmetic)
-        r = enclosure(F, boxes, scene.w, scene.params, scene.arithmetic)
+        out = F(*boxes, scene.w, params=scene.params)
+        r = aa.to_interval(out) if isinstance(out, Affine) else out
         possible, finite = contains_any(r, scene.isovalues)
-        return _bisect.BoxTest(possible, finite, (r.hi - r.lo) < tol)
+        # an affine form in the ray's symbol also says where along the piece a root can
+        # first be: the walk skips ahead to it (each isovalue's nearest feasible end)
+        start = (first_root_fraction(out, scene.isovalues) if isinstance(out, Affine)
+                 else 0.0)
+        return _bisect.BoxTest(possible, finite, (r.hi - r.lo) < tol, start)
 
+    verify = root_check(scene.field, scene.w, scene.params, scene.isovalues, scene.verify)
     return run_bisection(scene.method, test, p, D, inside, scene.eps, scene.max_steps,
-                         lanes)
+                         lanes, verify)
 
 
-def run_bisection(method, test, p, D, inside, eps, max_steps=None, lanes=None):
-    """Drive t- or K-bisection over a packet with a box test ``test(p, D, s0, s1)``."""
+def run_bisection(method, test, p, D, inside, eps, max_steps=None, lanes=None, verify=None):
+    """Drive t- or K-bisection over a packet with a box test ``test(p, D, s0, s1)`` and
+    an optional root check ``verify(p, D, s0, s1)`` (`root_check`)."""
     length = jnp.linalg.norm(D, axis=-1)
     d_max = _bisect.depth_for(length, eps)
     if max_steps is None:
@@ -228,17 +261,24 @@ def run_bisection(method, test, p, D, inside, eps, max_steps=None, lanes=None):
         # packet visits the union of its rays' candidate pieces
         max_steps = 256 * _bisect.MAX_DEPTH * (8 if method == "k-bisection" else 1)
     if method == "t-bisection" and lanes is not None:
-        return _bisect.t_bisect_lanes(test, p, D, d_max, inside, lanes, max_steps)
+        return _bisect.t_bisect_lanes(test, p, D, d_max, inside, lanes, max_steps, verify)
     if method == "t-bisection":
-        def one(p, D, d_max, active):
-            return _bisect.t_bisect(functools.partial(test, p, D), d_max, active, max_steps)
-        return jax.vmap(one)(p, D, d_max, inside)
+        return _t_bisection(test, p, D, d_max, inside, max_steps, verify)
     if method == "k-bisection":
-        return _k_bisection(test, p, D, d_max, inside, length, max_steps)
+        return _k_bisection(test, p, D, d_max, inside, length, max_steps, verify)
     raise ValueError(f"unknown bisection method {method!r}")
 
 
-def _k_bisection(test, p, D, d_max, inside, length, max_steps):
+def _t_bisection(test, p, D, d_max, inside, max_steps, verify):
+    """Per-ray t-bisection under vmap (one batched loop per packet)."""
+    def one(p, D, d_max, active):
+        check = None if verify is None else functools.partial(verify, p, D)
+        return _bisect.t_bisect(functools.partial(test, p, D), d_max, active, max_steps,
+                                check)
+    return jax.vmap(one)(p, D, d_max, inside)
+
+
+def _k_bisection(test, p, D, d_max, inside, length, max_steps, verify):
     """K-bisection for the rays that march coherently along the packet's dominant axis;
     the rest (opposite or too oblique K direction) fall back to t-bisection."""
     mean = jnp.sum(jnp.where(inside[:, None], D, 0.0), axis=0)
@@ -247,12 +287,10 @@ def _k_bisection(test, p, D, d_max, inside, length, max_steps):
     sign = jnp.sign(jnp.take(mean, axis))
     coherent = inside & (jnp.sign(dk) == sign) & (jnp.abs(dk) >= 0.25 * length)
     k_enter = jnp.take(p, axis, axis=1)
+    check = None if verify is None else functools.partial(verify, p, D)
     res_k = _bisect.k_bisect(lambda s0, s1: test(p, D, s0, s1), k_enter, k_enter + dk,
-                             d_max, coherent, max_steps)
-
-    def one(p, D, d_max, active):
-        return _bisect.t_bisect(functools.partial(test, p, D), d_max, active, max_steps)
-    res_t = jax.vmap(one)(p, D, d_max, inside & ~coherent)
+                             d_max, coherent, max_steps, check)
+    res_t = _t_bisection(test, p, D, d_max, inside & ~coherent, max_steps, verify)
     return jax.tree_util.tree_map(lambda a, b: jnp.where(coherent, a, b), res_k, res_t)
 
 
