@@ -25,8 +25,12 @@ def _images(cell):
     return sum("image/png" in out.get("data", {}) for out in cell.get("outputs", []))
 
 
-@pytest.mark.parametrize("name", ["01_implicits.ipynb", "02_volumes.ipynb",
-                                  "03_tet_meshes.ipynb"])
+# the fewest image outputs each notebook shows (04 draws one more with the shared fox)
+MIN_IMAGES = {"01_implicits.ipynb": 9, "02_volumes.ipynb": 9, "03_tet_meshes.ipynb": 9,
+              "04_neural_implicits.ipynb": 4}
+
+
+@pytest.mark.parametrize("name", sorted(MIN_IMAGES))
 def test_notebook_runs(name, monkeypatch):
     _require("nbformat", "nbclient", "ipykernel")
     import nbformat
@@ -49,4 +53,4 @@ def test_notebook_runs(name, monkeypatch):
     assert not errors, errors
     assert all(c.get("execution_count") for c in code), "a code cell did not run"
     n_images = sum(_images(c) for c in code)
-    assert n_images >= 9, f"only {n_images} image outputs"
+    assert n_images >= MIN_IMAGES[name], f"only {n_images} image outputs"
