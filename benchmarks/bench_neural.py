@@ -62,6 +62,7 @@ import io
 import pathlib
 import sys
 import types
+import typing
 
 import jax
 import jax.numpy as jnp
@@ -96,8 +97,7 @@ TIGHT_SAMPLES = 257
 SLOW_S = 60.0  # this benchmark's default --slow-s
 
 
-@dataclasses.dataclass(frozen=True)
-class Network:
+class Network(typing.NamedTuple):
     name: str
     path: pathlib.Path
     mlp: object  # ji.implicit.MLP
