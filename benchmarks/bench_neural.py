@@ -532,18 +532,22 @@ def tightness_section(networks, cfg):
             ratio = (width / np.maximum(true, 1e-300)).reshape(len(lengths), -1)
             for k, ln in enumerate(lengths):
                 r = ratio[k]
-                rows.append(dict(network=net.name, arithmetic=arith, input=form,
-                                 length=ln * edge, length_of_domain=ln,
-                                 median_ratio=float(np.median(r)),
+                with np.errstate(invalid="ignore"):  # inf - inf between percentiles
+                    stats = dict(median_ratio=float(np.median(r)),
                                  mean_ratio=float(np.mean(r)),
-                                 p90_ratio=float(np.percentile(r, 90)),
+                                 p90_ratio=float(np.percentile(r, 90)))
+                rows.append(dict(network=net.name, arithmetic=arith, input=form,
+                                 length=ln * edge, length_of_domain=ln, **stats,
+                                 # an unbounded enclosure (overflow inside the network)
+                                 infinite=int(np.sum(~np.isfinite(r))),
                                  # below 1: narrower than the sampled range (unsound,
                                  # beyond float32 rounding)
                                  narrower=int(np.sum(r < 1.0 - 1e-4)), pieces=int(r.size)))
             printed.append([arith, f"{secs:.1f}"] + [fmt(float(np.median(r)), ".3g")
                                                      for r in ratio])
         print(f"== tightness {net.name}: median enclosure width / true range, "
-              f"{cfg['tight_points']} pieces per length")
+              f"{cfg['tight_points']} pieces per length (inf: more than half of them "
+              "unbounded)")
         print_table(["arithmetic", "s"] + [f"2^{round(np.log2(ln))}" for ln in lengths],
                     printed)
     return dict(lengths_of_domain=list(lengths), domain_edge=edge,
@@ -588,10 +592,19 @@ def charts(plt, save, result):
         nets = list(dict.fromkeys(r["network"] for r in tg["rows"]))
         fig, axes = plt.subplots(1, len(nets), figsize=(4.5 * len(nets), 4), squeeze=False)
         for ax, name in zip(axes[0], nets):
+            mine = [r for r in tg["rows"] if r["network"] == name]
+            finite = [r["median_ratio"] for r in mine if np.isfinite(r["median_ratio"])]
+            top = 10.0 * max(finite, default=1.0)  # unbounded medians are drawn here
             for arith in tg["arithmetics"]:
-                rr = [r for r in tg["rows"] if r["network"] == name and r["arithmetic"] == arith]
-                ax.plot([r["length_of_domain"] for r in rr], [r["median_ratio"] for r in rr],
-                        marker="o", ms=3, label=arith)
+                rr = [r for r in mine if r["arithmetic"] == arith]
+                x = [r["length_of_domain"] for r in rr]
+                y = [r["median_ratio"] for r in rr]
+                line, = ax.plot(x, [v if np.isfinite(v) else np.nan for v in y],
+                                marker="o", ms=3, label=arith)
+                inf = [xi for xi, v in zip(x, y) if not np.isfinite(v)]
+                if inf:
+                    ax.plot(inf, [top] * len(inf), ls="", marker="^", ms=5,
+                            color=line.get_color(), label=f"{arith}: unbounded (drawn at top)")
             ax.set_xscale("log", base=2)
             ax.set_yscale("log")
             ax.set_xlabel("ray-piece length / domain edge")
