@@ -42,9 +42,13 @@ _IPOW_BITS = 10
 MAX_IPOW = 2**_IPOW_BITS - 1  # exponents of ipow: bits of repeated squaring
 
 
-def bucket(n: int, minimum: int = 16) -> int:
-    """The padded size for n: the next power of two, at least `minimum`."""
-    return max(minimum, 1 << max(0, math.ceil(math.log2(max(n, 1)))))
+def bucket(n: int, minimum: int = 16, fine: bool = False) -> int:
+    """The padded size for n: the next power of two (fine: or 1.5 times one), at least
+    `minimum`."""
+    p = 1 << max(0, math.ceil(math.log2(max(n, 1))))
+    if fine and p >= 4 and 3 * p // 4 >= n:
+        p = 3 * p // 4
+    return max(minimum, p)
 
 
 @pytree_dataclass
@@ -383,6 +387,7 @@ def prune(tape: Tape, choice) -> Tape:
     a_safe = jnp.where(has_a, a, 0)
     b_safe = jnp.where(has_b, b, 0)
     LR = L * R
+    n = tape.n
 
     # 1. forward: each value's resolution (itself, or what a decided min/max takes; the
     #    operands are earlier, so one pass resolves chains), and resolved operands
@@ -394,10 +399,10 @@ def prune(tape: Tape, choice) -> Tape:
         buf = lax.dynamic_update_slice(buf, jnp.where(has_a[i], ra, a[i]), (LR + i * R,))
         return lax.dynamic_update_slice(buf, jnp.where(has_b[i], rb, b[i]), (2 * LR + i * R,))
 
-    buf = lax.fori_loop(0, L, fwd, jnp.zeros(3 * LR, jnp.int32))
+    top = jnp.max(n)  # rows past every n are not visited
+    buf = lax.fori_loop(0, top, fwd, jnp.zeros(3 * LR, jnp.int32))
     res, a2, b2 = (buf[k * LR:(k + 1) * LR].reshape(L, R) for k in range(3))
     own = pick == 0
-    n = tape.n
     out = res[jnp.clip(n - 1, 0, L - 1), rows]
 
     # 2. backward: liveness from the output through kept instructions' operands
@@ -406,14 +411,14 @@ def prune(tape: Tape, choice) -> Tape:
     rows2 = jnp.concatenate([rows, rows])
 
     def back(j, live):
-        i = L - 1 - j
+        i = top - 1 - j
         li = lax.dynamic_slice(live, (i * R,), (R,))
         li2 = jnp.concatenate([li, li])
         dest = jnp.where((srcs[i] < L) & (li2 == 1), srcs[i] * R + rows2, LR)
         return live.at[dest].set(1, mode="drop")
 
     live0 = jnp.zeros(LR, jnp.int8).at[out * R + rows].set(1)
-    live = lax.fori_loop(0, L, back, live0).reshape(L, R)
+    live = lax.fori_loop(0, top, back, live0).reshape(L, R)
     keep = (live == 1) & own & (jnp.arange(L)[:, None] < n[None, :])
     imm_bits = lax.bitcast_convert_type(imm, jnp.int32)
 
@@ -425,7 +430,7 @@ def prune(tape: Tape, choice) -> Tape:
         return (lax.dynamic_update_slice(buf, cnt, (i * R,)),  # made XLA copy it per step
                 cnt + keep[i].astype(jnp.int32))
 
-    pos, new_n = lax.fori_loop(0, L, count, (jnp.zeros(LR, jnp.int32),
+    pos, new_n = lax.fori_loop(0, top, count, (jnp.zeros(LR, jnp.int32),
                                              jnp.zeros(R, jnp.int32)))
     new_a = jnp.where(has_a, pos[jnp.where(has_a, a2, 0) * R + rows], a)
     new_b = jnp.where(has_b, pos[jnp.where(has_b, b2, 0) * R + rows], b)
@@ -444,7 +449,7 @@ def prune(tape: Tape, choice) -> Tape:
         return dense.at[dest].set(fields[i])
 
     init = jnp.concatenate([jnp.full(F, CONST, jnp.int32), jnp.zeros(3 * F, jnp.int32)])
-    dense = lax.fori_loop(0, L, scatter, init).reshape(4, L + 1, R)[:, :L]
+    dense = lax.fori_loop(0, top, scatter, init).reshape(4, L + 1, R)[:, :L]
     return Tape(dense[0], dense[1], dense[2], lax.bitcast_convert_type(dense[3], jnp.float32),
                 new_n, tape.opset, tape.n_vars)
 
