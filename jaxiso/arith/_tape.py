@@ -30,7 +30,7 @@ from . import _interval as ia
 from ._interval import Interval
 
 __all__ = ["OPS", "Tape", "assemble", "from_function", "evaluate", "prune", "bucket",
-           "take_regions", "resize"]
+           "take_regions", "resize", "with_opset"]
 
 OPS = ("const", "var", "neg", "abs", "square", "sqrt", "exp", "log", "sin", "cos", "ipow",
        "add", "sub", "mul", "div", "min", "max")
@@ -452,6 +452,14 @@ def prune(tape: Tape, choice) -> Tape:
     dense = lax.fori_loop(0, top, scatter, init).reshape(4, L + 1, R)[:, :L]
     return Tape(dense[0], dense[1], dense[2], lax.bitcast_convert_type(dense[3], jnp.float32),
                 new_n, tape.opset, tape.n_vars)
+
+
+def with_opset(tape: Tape, opset) -> Tape:
+    """The tape allowed to hold the opcodes of `opset` too (codes or names): tapes that
+    share an opset and a padded length share one compiled evaluator."""
+    codes = {CODE[o] if isinstance(o, str) else int(o) for o in opset}
+    return Tape(tape.op, tape.a, tape.b, tape.imm, tape.n,
+                tuple(sorted(set(tape.opset) | codes)), tape.n_vars)
 
 
 def take_regions(tape: Tape, index) -> Tape:

@@ -95,7 +95,7 @@ def csg_program(n: int, seed: int = 0, extent: float = 1.0, difference: float = 
     bld = _Builder()
     size = extent * min(0.35, 1.2 / n ** (1 / 3))
     f = None
-    for i in range(n):
+    for _ in range(n):
         kind = kinds[rng.integers(len(kinds))]
         c = rng.uniform(-extent, extent, 3) * 0.85
         if kind == "sphere":
