@@ -279,3 +279,62 @@ def _apply_cond(branches, index, operands, ctx: _Context):
         else:
             results.append(ia.select_n(index, *cases))
     return results
+
+
+# ------------------------------------------------- flat programs (for jaxiso.arith._tape)
+
+
+def flat_program(f: Callable, n_args: int):
+    """f traced on `n_args` float32 scalars and flattened to straight-line nodes.
+
+    Returns (nodes, out): each node is ``("input", k)``, ``("const", value)`` (a numpy
+    scalar: literals, closed-over constants and every equation whose inputs are all
+    constant, folded with ``primitive.bind``) or ``(primitive name, params, operand node
+    indices)``; call-like primitives (jit, custom_jvp/vjp calls) are inlined. `out` is
+    the index of the result node. Primitives are not interpreted here: the caller maps
+    them (and rejects what it does not know)."""
+    avals = [jax.ShapeDtypeStruct((), jnp.float32)] * n_args
+    closed = jax.make_jaxpr(f)(*avals)
+    _check_output(closed, f)
+    nodes: list = []
+
+    def const(value):
+        nodes.append(("const", np.asarray(value)))
+        return len(nodes) - 1
+
+    def run(jaxpr, consts, args):
+        env = {}
+
+        def read(v):
+            return const(v.val) if isinstance(v, jcore.Literal) else env[v]
+
+        for v, c in zip(jaxpr.constvars, consts):
+            env[v] = const(c)
+        for v, a in zip(jaxpr.invars, args):
+            env[v] = a
+        for eqn in jaxpr.eqns:
+            ins = [read(v) for v in eqn.invars]
+            body = _call_body(eqn)
+            if body is not None and eqn.primitive.name not in _LOOP_PRIMITIVES:
+                outs = run(*_closed(body), ins)
+            elif all(nodes[i][0] == "const" for i in ins):
+                val = eqn.primitive.bind(*[nodes[i][1] for i in ins], **eqn.params)
+                vals = val if eqn.primitive.multiple_results else [val]
+                outs = [const(np.asarray(v)) for v in vals]
+            else:
+                if eqn.primitive.multiple_results or len(eqn.outvars) != 1:
+                    raise NotImplementedError(
+                        f"flat_program: primitive '{eqn.primitive.name}' has several "
+                        "results")
+                nodes.append((eqn.primitive.name, dict(eqn.params), tuple(ins)))
+                outs = [len(nodes) - 1]
+            for v, o in zip(eqn.outvars, outs):
+                env[v] = o
+        return [read(v) for v in jaxpr.outvars]
+
+    inputs = []
+    for k in range(n_args):
+        nodes.append(("input", k))
+        inputs.append(len(nodes) - 1)
+    out = run(closed.jaxpr, closed.consts, inputs)[0]
+    return nodes, out

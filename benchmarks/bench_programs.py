@@ -1,0 +1,278 @@
+"""Large implicit programs (issue 14): tape path vs straight (inlined) path.
+
+Sections (each case runs in its own subprocess under a wall-clock timeout and an address
+space cap, so that peak memory is per case and a case that blows up is reported, not
+fatal):
+
+  crossover  generated CSG programs of ~100..10,000 instructions: compile time, run time
+             and peak RSS of (a) the straight path, ``jax.jit(ji.extend(f, "interval"))``
+             on 4,096 boxes, and (b) the tape path, `program.evaluate_intervals` (one
+             compiled evaluator per padded length).
+  prospero   Prospero as an extruded 2D implicit (orthographic camera down z) at 512^2 and
+             1024^2 with `program.cast`: first call (compile + run), median run after,
+             pruned tape lengths per level, agreement with float64 evaluation at pixel
+             centres; and JAX brute-force dense evaluation (jitted point evaluation of the
+             program on every pixel centre) in its own subprocess.
+  noprune    Prospero 512^2 with pruning off (every region runs the full tape).
+  csg3d      a generated CSG of 400 primitives at 256^2 in perspective: compile, run,
+             hit-mask agreement with float64 dense sampling on 1,500 random pixels.
+
+Usage: python benchmarks/bench_programs.py [--sections crossover,prospero,noprune,csg3d]
+       [--quick] [--out benchmarks/results/programs_cpu.json]
+Only public jaxiso names are used.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import time
+
+HERE = pathlib.Path(__file__).resolve().parent
+DATA = HERE.parents[1] / "shared" / "data"
+PROSPERO = DATA / "prospero.vm"
+sys.path.insert(0, str(HERE.parent / "tests"))  # the float64 references
+
+
+def _rss_mb():
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _block(x):
+    import jax
+    return jax.block_until_ready(x)
+
+
+# ------------------------------------------------------------------------ the cases
+
+
+def case_straight(n_prims, seed=0):
+    import jax
+    import numpy as np
+
+    import jaxiso as ji
+    from jaxiso.implicit.generate import csg_program
+    prog = csg_program(n_prims, seed)
+    rng = np.random.default_rng(0)
+    c = rng.uniform(-1, 1, (4096, 3)).astype(np.float32)
+    box = [ji.Interval(c[:, k] - 0.02, c[:, k] + 0.02) for k in range(3)]
+    F = jax.jit(ji.extend(prog, "interval"))
+    t0 = time.perf_counter()
+    compiled = F.lower(*box).compile()
+    compile_s = time.perf_counter() - t0
+    _block(compiled(*box))
+    runs = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        _block(compiled(*box))
+        runs.append(time.perf_counter() - t0)
+    return dict(path="straight", instructions=len(prog), compile_s=compile_s,
+                run_s=statistics.median(runs), peak_rss_mb=_rss_mb())
+
+
+def case_tape(n_prims, seed=0):
+    import numpy as np
+
+    import jaxiso as ji
+    from jaxiso.implicit import program
+    from jaxiso.implicit.generate import csg_program
+    prog = csg_program(n_prims, seed)
+    t0 = time.perf_counter()
+    tape = program.tape_of(prog)
+    build_s = time.perf_counter() - t0
+    rng = np.random.default_rng(0)
+    c = rng.uniform(-1, 1, (4096, 3)).astype(np.float32)
+    box = [ji.Interval(c[:, k] - 0.02, c[:, k] + 0.02) for k in range(3)]
+    t0 = time.perf_counter()
+    _block(program.evaluate_intervals(tape, *box))
+    first_s = time.perf_counter() - t0
+    runs = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        _block(program.evaluate_intervals(tape, *box))
+        runs.append(time.perf_counter() - t0)
+    run_s = statistics.median(runs)
+    return dict(path="tape", instructions=len(prog), tape_length=tape.length,
+                build_s=build_s, compile_s=max(first_s - run_s, 0.0), run_s=run_s,
+                peak_rss_mb=_rss_mb())
+
+
+def _prospero_camera(n):
+    import jaxiso as ji
+    return ji.Camera.orthographic_view((0, 0, 3), (0, 0, 0), (0, 1, 0), 1.0, n, n)
+
+
+def case_prospero(n, prune=True, repeats=3):
+    import numpy as np
+    from reference_program64 import vm64
+
+    import jaxiso as ji
+    from jaxiso.implicit import program
+    prog = ji.implicit.load_vm(PROSPERO)
+    cam = _prospero_camera(n)
+    t0 = time.perf_counter()
+    res = program.cast(prog, (-1, -1, -1), (1, 1, 1), cam, prune=prune)
+    first_s = time.perf_counter() - t0
+    runs = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        res = program.cast(prog, (-1, -1, -1), (1, 1, 1), cam, prune=prune)
+        runs.append(time.perf_counter() - t0)
+    o = np.asarray(cam.rays().origin, np.float64)
+    ref = vm64(prog.ops, o[..., 0], o[..., 1], o[..., 2]) < 0
+    hit = np.asarray(res.hit)
+    levels = [{k: lv[k] for k in ("tile", "regions", "full", "ambiguous", "tape_bucket",
+                                  "tape_mean", "tape_max", "tape_hist", "seconds")}
+              for lv in res.stats["levels"]]
+    run_s = statistics.median(runs)
+    return dict(size=n, prune=prune, first_call_s=first_s, run_s=run_s,
+                compile_s_est=max(first_s - run_s, 0.0), agreement=float(np.mean(hit == ref)),
+                inside_fraction=float(ref.mean()), levels=levels,
+                final=res.stats["final"], peak_rss_mb=_rss_mb())
+
+
+def case_dense(n):
+    """JAX brute force: the program inlined and jitted, evaluated at every pixel centre."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    from reference_program64 import vm64
+
+    import jaxiso as ji
+    prog = ji.implicit.load_vm(PROSPERO)
+    cam = _prospero_camera(n)
+    o = cam.rays().origin
+    x, y = o[..., 0].reshape(-1), o[..., 1].reshape(-1)
+    f = jax.jit(lambda x, y: prog(x, y, jnp.zeros_like(x)))
+    t0 = time.perf_counter()
+    compiled = f.lower(x, y).compile()
+    compile_s = time.perf_counter() - t0
+    _block(compiled(x, y))
+    runs = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        v = _block(compiled(x, y))
+        runs.append(time.perf_counter() - t0)
+    on = np.asarray(o, np.float64)
+    ref = vm64(prog.ops, on[..., 0], on[..., 1], on[..., 2]).reshape(-1) < 0
+    return dict(size=n, compile_s=compile_s, run_s=statistics.median(runs),
+                agreement=float(np.mean((np.asarray(v) < 0) == ref)), peak_rss_mb=_rss_mb())
+
+
+def case_csg3d(n_prims=400, size=256, seed=1):
+    import numpy as np
+    from reference_program64 import first_inside64
+
+    import jaxiso as ji
+    from jaxiso.implicit import program
+    from jaxiso.implicit.generate import csg_program
+    prog = csg_program(n_prims, seed)
+    cam = ji.Camera.look_at((3.0, 2.2, 1.8), (0, 0, 0), fov=45.0, width=size, height=size)
+    lo, hi = (-1.4,) * 3, (1.4,) * 3
+    t0 = time.perf_counter()
+    res = program.cast(prog, lo, hi, cam)
+    first_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    res = program.cast(prog, lo, hi, cam)
+    run_s = time.perf_counter() - t0
+    rays = cam.rays()
+    pick = np.random.default_rng(0).choice(size * size, min(1500, size * size), replace=False)
+    ref_hit, ref_t = first_inside64(prog.ops, np.asarray(rays.origin).reshape(-1, 3)[pick],
+                                    np.asarray(rays.direction).reshape(-1, 3)[pick], lo, hi)
+    hit = np.asarray(res.hit).reshape(-1)[pick]
+    t = np.asarray(res.t).reshape(-1)[pick]
+    both = hit & ref_hit
+    levels = [{k: lv[k] for k in ("tile", "regions", "full", "ambiguous", "tape_bucket",
+                                  "tape_mean", "tape_max", "tape_hist", "seconds")}
+              for lv in res.stats["levels"]]
+    return dict(primitives=n_prims, instructions=len(prog), size=size, first_call_s=first_s,
+                run_s=run_s, compile_s_est=max(first_s - run_s, 0.0),
+                hit_agreement=float(np.mean(hit == ref_hit)),
+                hit_fraction=float(ref_hit.mean()),
+                t_error_median=float(np.median(np.abs(t[both] - ref_t[both]))),
+                levels=levels, final=res.stats["final"], peak_rss_mb=_rss_mb())
+
+
+CASES = dict(straight=case_straight, tape=case_tape, prospero=case_prospero,
+             dense=case_dense, csg3d=case_csg3d)
+
+
+# ------------------------------------------------------------------------ the driver
+
+
+def run_case(name, args, timeout, mem_mb):
+    """One case in a subprocess (ulimit -v mem_mb, timeout); its JSON line or a failure."""
+    cmd = ["bash", "-c", f'ulimit -v {mem_mb * 1024}; exec "$0" "$@"', sys.executable,
+           __file__, "--case", name, "--case-args", json.dumps(args)]
+    env = dict(os.environ)
+    env.setdefault("PYTHONPATH", str(HERE.parent))
+    t0 = time.perf_counter()
+    try:
+        out = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
+    except subprocess.TimeoutExpired:
+        return dict(case=name, args=args, failed=f"timeout after {timeout} s")
+    wall = time.perf_counter() - t0
+    for line in reversed(out.stdout.splitlines()):
+        if line.startswith("{"):
+            return dict(case=name, args=args, wall_s=wall, **json.loads(line))
+    tail = (out.stderr or out.stdout).strip().splitlines()[-3:]
+    return dict(case=name, args=args, failed=f"exit {out.returncode}: {' | '.join(tail)}")
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--case")
+    ap.add_argument("--case-args", default="[]")
+    ap.add_argument("--sections", default="crossover,prospero,noprune,csg3d")
+    ap.add_argument("--quick", action="store_true", help="smaller sizes (smoke run)")
+    ap.add_argument("--timeout", type=int, default=600)
+    ap.add_argument("--mem-mb", type=int, default=8000)
+    ap.add_argument("--out", default=str(HERE / "results" / "programs_cpu.json"))
+    a = ap.parse_args()
+    if a.case:
+        print(json.dumps(CASES[a.case](*json.loads(a.case_args))))
+        return
+    import jax
+    sections = a.sections.split(",")
+    results = dict(device=jax.devices()[0].device_kind, jax=jax.__version__,
+                   machine=platform.machine(), cpus=os.cpu_count(), sections={},
+                   timing="first_call_s = compile + first run; run_s = median of repeats "
+                          "(host clock, block_until_ready); peak_rss_mb = the case "
+                          "subprocess's max RSS")
+
+    def record(section, r):
+        results["sections"].setdefault(section, []).append(r)
+        keys = ("instructions", "size", "prune", "compile_s", "compile_s_est",
+                "first_call_s", "run_s", "agreement", "hit_agreement", "peak_rss_mb",
+                "failed")
+        print(section, r["case"], {k: (round(r[k], 4) if isinstance(r[k], float) else r[k])
+                                   for k in keys if k in r}, flush=True)
+        pathlib.Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+        pathlib.Path(a.out).write_text(json.dumps(results, indent=1))
+
+    if "crossover" in sections:
+        prims = [5, 15, 50, 150, 480] if not a.quick else [5, 15]
+        for n in prims:
+            record("crossover", run_case("tape", [n], a.timeout, a.mem_mb))
+            record("crossover", run_case("straight", [n], a.timeout, a.mem_mb))
+    if "prospero" in sections and PROSPERO.exists():
+        for n in ([512, 1024] if not a.quick else [128]):
+            record("prospero", run_case("prospero", [n], a.timeout, a.mem_mb))
+            record("prospero", run_case("dense", [n], a.timeout, a.mem_mb))
+    if "noprune" in sections and PROSPERO.exists():
+        n = 512 if not a.quick else 128
+        record("noprune", run_case("prospero", [n, False, 1], a.timeout, a.mem_mb))
+    if "csg3d" in sections:
+        args = [400, 256] if not a.quick else [30, 32]
+        record("csg3d", run_case("csg3d", args, a.timeout, a.mem_mb))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,488 @@
+"""Instruction tapes: straight-line programs as data, run by one compiled evaluator.
+
+A `Tape` is a program in SSA form: instruction i computes value i from the values named
+by its operand indices `a`, `b` (earlier instructions), a constant `imm` or a coordinate
+(``var``: `a` is the axis). The opcodes are `OPS`. Because the program is data (int32 and
+float32 arrays), one compiled `evaluate` runs any tape of the same padded length: a new
+program, or a program pruned for a region of space, costs no new XLA code. Tapes are
+padded to bucketed lengths (`bucket`) so that only a few shapes ever compile.
+
+`evaluate` runs a batch of tapes ``[R, L]`` (one per region) on ``[R, P]`` points or
+intervals with a `lax.fori_loop` over instructions and a register file ``[L, R, P]``; each
+step computes the opcodes the tape set can use (its static `opset`) and selects per region.
+Interval semantics are the rules of `ia` (same functions as `extend`). In interval mode it
+can also record, per min/max instruction, which operand the intervals prove is chosen;
+`prune` then rewrites each tape for its region: decided min/max become their operand and
+instructions no longer reachable from the output are dropped (the tape is compacted).
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from .._core import pytree_dataclass, static_field
+from . import _interval as ia
+from ._interval import Interval
+
+__all__ = ["OPS", "Tape", "assemble", "from_function", "evaluate", "prune", "bucket",
+           "take_regions", "resize", "with_opset"]
+
+OPS = ("const", "var", "neg", "abs", "square", "sqrt", "exp", "log", "sin", "cos", "ipow",
+       "add", "sub", "mul", "div", "min", "max")
+CODE = {name: i for i, name in enumerate(OPS)}
+CONST, VAR, NEG, ABS, SQUARE, SQRT, EXP, LOG, SIN, COS, IPOW = range(11)
+ADD, SUB, MUL, DIV, MIN, MAX = range(11, 17)
+FIRST_UNARY, FIRST_BINARY = NEG, ADD
+_IPOW_BITS = 10
+MAX_IPOW = 2**_IPOW_BITS - 1  # exponents of ipow: bits of repeated squaring
+
+
+def bucket(n: int, minimum: int = 16, fine: bool = False) -> int:
+    """The padded size for n: the next power of two (fine: or 1.5 times one), at least
+    `minimum`."""
+    p = 1 << max(0, math.ceil(math.log2(max(n, 1))))
+    if fine and p >= 4 and 3 * p // 4 >= n:
+        p = 3 * p // 4
+    return max(minimum, p)
+
+
+@pytree_dataclass
+class Tape:
+    """One tape ([L] arrays, scalar n) or a batch of tapes ([L, R] arrays, instruction
+    major, and [R] n).
+
+    Attributes:
+      op, a, b: int32 opcode and operand indices (``var``: a = coordinate axis).
+      imm: float32 constant of ``const`` (the exponent of ``ipow``).
+      n: int32 number of instructions in use; the result is instruction n - 1.
+      opset: static sorted tuple of the opcodes the tape may contain (the evaluator
+        computes only these).
+      n_vars: static number of coordinates the program reads (x, y, z[, w]).
+    """
+
+    op: jax.Array
+    a: jax.Array
+    b: jax.Array
+    imm: jax.Array
+    n: jax.Array
+    opset: tuple = static_field()
+    n_vars: int = static_field()
+
+    @property
+    def length(self) -> int:
+        """The padded length L."""
+        return self.op.shape[0]
+
+    def uses(self, axis: int) -> bool:
+        """Whether the (concrete) tape reads coordinate `axis`."""
+        op, a = np.asarray(self.op), np.asarray(self.a)
+        return bool(np.any((op == VAR) & (a == axis)))
+
+
+def assemble(ops, n_vars: int, length: int | None = None) -> Tape:
+    """A tape from a list of ``(opname, a, b, imm)`` in SSA order (operands index earlier
+    entries; the last entry is the result), padded to `length` (default `bucket`)."""
+    n = len(ops)
+    if n == 0:
+        raise ValueError("an empty program")
+    L = bucket(n) if length is None else length
+    if L < n:
+        raise ValueError(f"length {L} < {n} instructions")
+    op = np.zeros(L, np.int32)
+    a = np.zeros(L, np.int32)
+    b = np.zeros(L, np.int32)
+    imm = np.zeros(L, np.float32)
+    for i, (name, ai, bi, v) in enumerate(ops):
+        code = CODE[name]
+        op[i], a[i], b[i], imm[i] = code, ai, bi, v
+        if code >= FIRST_UNARY and not ai < i or code >= FIRST_BINARY and not bi < i:
+            raise ValueError(f"instruction {i} ({name}) reads a later value")
+        if code == VAR and not 0 <= ai < n_vars:
+            raise ValueError(f"instruction {i} reads coordinate {ai} of {n_vars}")
+    opset = tuple(sorted({CODE[o[0]] for o in ops} | {CONST}))
+    return Tape(jnp.asarray(op), jnp.asarray(a), jnp.asarray(b), jnp.asarray(imm),
+                jnp.asarray(n, jnp.int32), opset, n_vars)
+
+
+# ------------------------------------------------------------- from plain JAX functions
+
+_UNARY_PRIMS = {"neg": "neg", "abs": "abs", "sqrt": "sqrt", "exp": "exp", "log": "log",
+                "sin": "sin", "cos": "cos", "square": "square"}
+_BINARY_PRIMS = {"add": "add", "sub": "sub", "mul": "mul", "div": "div", "max": "max",
+                 "min": "min"}
+_IDENTITY_PRIMS = ("copy", "copy_p", "convert_element_type", "reduce_precision")
+
+
+def from_function(f, n_vars: int) -> Tape:
+    """The tape of a plain-JAX scalar function ``f(x0, ..., x{n_vars-1})`` (float32).
+
+    Raises NotImplementedError naming a primitive the tape has no opcode for (comparisons,
+    selects, loops, array operations): such functions stay on the straight path."""
+    from ._extend import flat_program  # all jaxpr access lives in _extend
+
+    nodes, out = flat_program(f, n_vars)
+    ops: list = []
+    where: dict = {}  # node index -> tape index
+
+    def emit(name, a=0, b=0, imm=0.0):
+        ops.append((name, a, b, imm))
+        return len(ops) - 1
+
+    def const(value):
+        return emit("const", imm=float(value))
+
+    def power(x, y: int):
+        if y == 0:
+            return const(1.0)
+        if y < 0:
+            return emit("div", const(1.0), power(x, -y))
+        if y == 1:
+            return x
+        if y == 2:
+            return emit("square", x)
+        if y > MAX_IPOW:
+            raise NotImplementedError(f"tape: integer power {y} > {MAX_IPOW}")
+        return emit("ipow", x, imm=float(y))
+
+    for k, node in enumerate(nodes):
+        kind = node[0]
+        if kind == "input":
+            where[k] = emit("var", node[1])
+            continue
+        if kind == "const":
+            v = node[1]
+            if v.shape != () or not np.issubdtype(v.dtype, np.floating) and \
+                    not np.issubdtype(v.dtype, np.integer):
+                continue  # non-scalar constants may only feed folded equations
+            where[k] = const(v)
+            continue
+        name, params, args = node
+        for i in args:
+            if i not in where:
+                raise NotImplementedError(f"tape: primitive '{name}' reads a non-scalar or "
+                                          "non-numeric constant")
+        ins = [where[i] for i in args]
+        if name in _IDENTITY_PRIMS:
+            dtype = params.get("new_dtype", jnp.float32)
+            if dtype is not None and not jnp.issubdtype(dtype, jnp.floating):
+                raise NotImplementedError(f"tape: conversion to {dtype}")
+            where[k] = ins[0]
+        elif name in _UNARY_PRIMS:
+            where[k] = emit(_UNARY_PRIMS[name], ins[0])
+        elif name in _BINARY_PRIMS:
+            x, y = ins
+            if x == y and name == "mul":
+                where[k] = emit("square", x)
+            elif x == y and name == "sub":
+                where[k] = const(0.0)
+            else:
+                where[k] = emit(_BINARY_PRIMS[name], x, y)
+        elif name == "integer_pow":
+            where[k] = power(ins[0], int(params["y"]))
+        elif name == "pow" and ops[ins[1]][0] == "const" and \
+                float(ops[ins[1]][3]).is_integer():
+            where[k] = power(ins[0], int(ops[ins[1]][3]))
+        else:
+            raise NotImplementedError(
+                f"tape: no opcode for the JAX primitive '{name}' (the tape knows "
+                f"{', '.join(OPS)}); this function stays on the straight path")
+    if out not in where:
+        raise NotImplementedError("tape: the result is not a scalar number")
+    return _tidy(ops, where[out], n_vars)
+
+
+def _tidy(ops, out: int, n_vars: int) -> Tape:
+    """Keep what the output reads; leaves (const, var) first; then assemble."""
+    live = np.zeros(len(ops), bool)
+    live[out] = True
+    for i in range(out, -1, -1):
+        if live[i]:
+            code = CODE[ops[i][0]]
+            if code >= FIRST_UNARY:
+                live[ops[i][1]] = True
+            if code >= FIRST_BINARY:
+                live[ops[i][2]] = True
+    order = [i for i in range(out + 1) if live[i] and CODE[ops[i][0]] < FIRST_UNARY]
+    order += [i for i in range(out + 1) if live[i] and CODE[ops[i][0]] >= FIRST_UNARY]
+    # the result must be last; it is last among non-leaves, or the tape is a single leaf
+    if order[-1] != out:
+        order.remove(out)
+        order.append(out)
+    new = {old: j for j, old in enumerate(order)}
+    tidy = []
+    for old in order:
+        name, a, b, v = ops[old]
+        code = CODE[name]
+        tidy.append((name, new[a] if code >= FIRST_UNARY else a,
+                     new[b] if code >= FIRST_BINARY else b, v))
+    return assemble(tidy, n_vars)
+
+
+# ------------------------------------------------------------------------- evaluation
+
+
+def _ipow_point(v, n):
+    """v ** n for int32 n in [0, MAX_IPOW] by repeated squaring in lax.integer_pow's
+    order (bitwise the same products)."""
+    acc = jnp.ones_like(v)
+    for bit in range(_IPOW_BITS):
+        acc = jnp.where(((n >> bit) & 1) == 1, acc * v, acc)
+        v = v * v
+    return acc
+
+
+def _point_cases(opset, va, vb, imm, var):
+    n = imm.astype(jnp.int32)
+    table = {
+        CONST: lambda: jnp.broadcast_to(imm, va.shape), VAR: lambda: var,
+        NEG: lambda: -va, ABS: lambda: jnp.abs(va), SQUARE: lambda: va * va,
+        SQRT: lambda: jnp.sqrt(va), EXP: lambda: jnp.exp(va), LOG: lambda: jnp.log(va),
+        SIN: lambda: jnp.sin(va), COS: lambda: jnp.cos(va),
+        IPOW: lambda: _ipow_point(va, n), ADD: lambda: va + vb, SUB: lambda: va - vb,
+        MUL: lambda: va * vb, DIV: lambda: va / vb, MIN: lambda: jnp.minimum(va, vb),
+        MAX: lambda: jnp.maximum(va, vb),
+    }
+    return [table[c]() for c in opset]
+
+
+def _ipow_interval(x: Interval, n) -> Interval:
+    """ia.ipow with a traced exponent: even powers are even, odd ones monotone."""
+    even = (n % 2) == 0
+    lo = jnp.where(even, _ipow_point(ia.mig(x), n), _ipow_point(x.lo, n))
+    hi = jnp.where(even, _ipow_point(ia.mag(x), n), _ipow_point(x.hi, n))
+    return Interval(lo, hi)
+
+
+def _interval_cases(opset, va: Interval, vb: Interval, imm, var: Interval):
+    n = imm.astype(jnp.int32)
+    c = jnp.broadcast_to(imm, va.lo.shape)
+    table = {
+        CONST: lambda: Interval(c, c), VAR: lambda: var,
+        NEG: lambda: ia.neg(va), ABS: lambda: ia.abs(va), SQUARE: lambda: ia.square(va),
+        SQRT: lambda: ia.sqrt(va), EXP: lambda: ia.exp(va), LOG: lambda: ia.log(va),
+        SIN: lambda: ia.sin(va), COS: lambda: ia.cos(va),
+        IPOW: lambda: _ipow_interval(va, n), ADD: lambda: ia.add(va, vb),
+        SUB: lambda: ia.sub(va, vb), MUL: lambda: ia.mul(va, vb), DIV: lambda: ia.div(va, vb),
+        MIN: lambda: ia.minimum(va, vb), MAX: lambda: ia.maximum(va, vb),
+    }
+    return [table[c]() for c in opset]
+
+
+def _select(opset, o, cases):
+    """cases[position of o in opset] per region (o: [R], cases: [R, P] each)."""
+    if len(cases) == 1:
+        return cases[0]
+    lookup = np.zeros(len(OPS), np.int32)
+    lookup[list(opset)] = np.arange(len(opset))
+    which = jnp.broadcast_to(jnp.asarray(lookup)[o][:, None], cases[0].shape)
+    return lax.select_n(which, *cases)
+
+
+def _choice(o, va: Interval, vb: Interval):
+    """1 where the intervals prove min/max takes its first operand, 2 the second, else 0."""
+    o = o[:, None]
+    first = jnp.where(o == MIN, va.hi <= vb.lo, va.lo >= vb.hi)
+    second = jnp.where(o == MIN, vb.hi <= va.lo, vb.lo >= va.hi)
+    pick = jnp.where(first, 1, jnp.where(second, 2, 0)).astype(jnp.int8)
+    return jnp.where((o == MIN) | (o == MAX), pick, jnp.int8(0))
+
+
+def evaluate(tape: Tape, coords, record: bool = False):
+    """Run a batch of tapes on points or intervals.
+
+    Args:
+      tape: a batch of tapes ([L, R] arrays, [R] n).
+      coords: `tape.n_vars` coordinates, each a float32 array or an `Interval`,
+        broadcastable to [R, P] (all points, or all intervals).
+      record: interval mode only: also return the min/max choices, int8 [L, R, P]
+        (1: the first operand is proved to be chosen on that box, 2: the second, 0: both
+        possible or not a min/max).
+
+    Returns the program's value [R, P] (an array, or an Interval), and the choices if
+    `record`. Pure; jit it with the tape as an argument (its `opset`/`n_vars` static).
+    """
+    if len(coords) != tape.n_vars:
+        raise ValueError(f"the tape reads {tape.n_vars} coordinates, got {len(coords)}")
+    intervals = isinstance(coords[0], Interval)
+    L, R = tape.op.shape
+    if intervals:
+        shape = jnp.broadcast_shapes((R, 1), *[jnp.shape(c.lo) for c in coords],
+                                     *[jnp.shape(c.hi) for c in coords])
+        lo = jnp.stack([jnp.broadcast_to(c.lo, shape) for c in coords])
+        hi = jnp.stack([jnp.broadcast_to(c.hi, shape) for c in coords])
+        cstack = (lo.astype(jnp.float32), hi.astype(jnp.float32))
+    else:
+        if record:
+            raise ValueError("record=True needs interval coordinates")
+        shape = jnp.broadcast_shapes((R, 1), *[jnp.shape(c) for c in coords])
+        cstack = (jnp.stack([jnp.broadcast_to(c, shape) for c in coords]).astype(
+            jnp.float32),)
+    rows = jnp.arange(R)
+    # one register file (XLA updates a single loop-carried buffer in place; with two it
+    # copied them every step): lo and hi side by side, and the choices as a third part
+    C = len(cstack) + int(record)
+    P = shape[-1]
+    regs = jnp.zeros((L, R, C * P), jnp.float32)
+
+    def parts(v):
+        return [v[:, c * P:(c + 1) * P] for c in range(C)]
+
+    def body(i, regs):
+        o, a, b = tape.op[i], tape.a[i], tape.b[i]
+        imm = tape.imm[i][:, None]
+        va = parts(regs[jnp.clip(a, 0, L - 1), rows])
+        vb = parts(regs[b, rows])
+        var = [c[jnp.clip(a, 0, tape.n_vars - 1), rows] for c in cstack]
+        if intervals:
+            A, B, V = Interval(va[0], va[1]), Interval(vb[0], vb[1]), Interval(*var)
+            cases = _interval_cases(tape.opset, A, B, imm, V)
+            out = [_select(tape.opset, o, [c.lo for c in cases]),
+                   _select(tape.opset, o, [c.hi for c in cases])]
+            if record:
+                out.append(_choice(o, A, B).astype(jnp.float32))
+            out = jnp.concatenate(out, axis=-1)
+        else:
+            out = _select(tape.opset, o, _point_cases(tape.opset, va[0], vb[0], imm, var[0]))
+        return lax.dynamic_update_index_in_dim(regs, out, i, 0)
+
+    regs = lax.fori_loop(0, jnp.max(tape.n), body, regs)
+    last = jnp.clip(tape.n - 1, 0, L - 1)
+    res = parts(regs[last, rows])[:2 if intervals else 1]
+    if record:
+        chosen = regs[:, :, 2 * P:].astype(jnp.int8)
+    value = Interval(*res) if intervals else res[0]
+    return (value, chosen) if record else value
+
+
+# ---------------------------------------------------------------------------- pruning
+
+
+def prune(tape: Tape, choice) -> Tape:
+    """Each tape of a batch shortened for its region.
+
+    Args:
+      tape: [L, R] batch of tapes.
+      choice: int8 [L, R] from `evaluate(..., record=True)` on the region (per region,
+        one box): 1/2 where a min/max is proved to take its first/second operand.
+
+    Returns the [L, R] batch with decided min/max replaced by their operand, everything
+    not reachable from the output dropped, and the rest moved to the front in order (new
+    n). On the region, the pruned tape computes the same values as the tape (same
+    operations in the same order on the surviving path)."""
+    L, R = tape.op.shape
+    # Three loops over instructions, each touching O(R) elements per step and carrying a
+    # single flat buffer (XLA updates it in place; whole-array gathers and scatters were
+    # 10x slower on CPU). Layout [L, R]: step i reads and writes row i.
+    op, a, b, imm = tape.op, tape.a, tape.b, tape.imm
+    rows = jnp.arange(R, dtype=jnp.int32)
+    has_a = op >= FIRST_UNARY
+    has_b = op >= FIRST_BINARY
+    minmax = (op == MIN) | (op == MAX)
+    pick = jnp.where(minmax, choice, 0).astype(jnp.int32)
+    a_safe = jnp.where(has_a, a, 0)
+    b_safe = jnp.where(has_b, b, 0)
+    LR = L * R
+    n = tape.n
+
+    # 1. forward: each value's resolution (itself, or what a decided min/max takes; the
+    #    operands are earlier, so one pass resolves chains), and resolved operands
+    def fwd(i, buf):
+        ra = buf[a_safe[i] * R + rows]
+        rb = buf[b_safe[i] * R + rows]
+        res = jnp.where(pick[i] == 1, ra, jnp.where(pick[i] == 2, rb, i))
+        buf = lax.dynamic_update_slice(buf, res, (i * R,))
+        buf = lax.dynamic_update_slice(buf, jnp.where(has_a[i], ra, a[i]), (LR + i * R,))
+        return lax.dynamic_update_slice(buf, jnp.where(has_b[i], rb, b[i]), (2 * LR + i * R,))
+
+    top = jnp.max(n)  # rows past every n are not visited
+    buf = lax.fori_loop(0, top, fwd, jnp.zeros(3 * LR, jnp.int32))
+    res, a2, b2 = (buf[k * LR:(k + 1) * LR].reshape(L, R) for k in range(3))
+    own = pick == 0
+    out = res[jnp.clip(n - 1, 0, L - 1), rows]
+
+    # 2. backward: liveness from the output through kept instructions' operands
+    srcs = jnp.concatenate([jnp.where(has_a & own, a2, L), jnp.where(has_b & own, b2, L)],
+                           axis=1)  # [L, 2R]
+    rows2 = jnp.concatenate([rows, rows])
+
+    def back(j, live):
+        i = top - 1 - j
+        li = lax.dynamic_slice(live, (i * R,), (R,))
+        li2 = jnp.concatenate([li, li])
+        dest = jnp.where((srcs[i] < L) & (li2 == 1), srcs[i] * R + rows2, LR)
+        return live.at[dest].set(1, mode="drop")
+
+    live0 = jnp.zeros(LR, jnp.int8).at[out * R + rows].set(1)
+    live = lax.fori_loop(0, top, back, live0).reshape(L, R)
+    keep = (live == 1) & own & (jnp.arange(L)[:, None] < n[None, :])
+    imm_bits = lax.bitcast_convert_type(imm, jnp.int32)
+
+    # 3. compaction: kept instruction i moves to the region's next free slot with its
+    #    operands renumbered. First the new positions (a running count per region), then
+    #    one scatter per instruction.
+    def count(i, carry):
+        buf, cnt = carry  # the small counters apart: a read-then-write of one buffer
+        return (lax.dynamic_update_slice(buf, cnt, (i * R,)),  # made XLA copy it per step
+                cnt + keep[i].astype(jnp.int32))
+
+    pos, new_n = lax.fori_loop(0, top, count, (jnp.zeros(LR, jnp.int32),
+                                             jnp.zeros(R, jnp.int32)))
+    new_a = jnp.where(has_a, pos[jnp.where(has_a, a2, 0) * R + rows], a)
+    new_b = jnp.where(has_b, pos[jnp.where(has_b, b2, 0) * R + rows], b)
+    fields = jnp.stack([op, new_a, new_b, imm_bits], axis=1).reshape(L, 4 * R)
+    F = LR + R  # each field: [L + 1, R], row L for the dropped
+    offsets = jnp.repeat(jnp.arange(4, dtype=jnp.int32) * F, R)
+    rows4 = jnp.tile(rows, 4)
+    keep4 = jnp.tile(keep, (1, 4))
+    pos4 = jnp.tile(pos.reshape(L, R), (1, 4))
+    # materialised once: XLA would otherwise sink these broadcasts into the loop body
+    fields, offsets, rows4, keep4, pos4 = lax.optimization_barrier(
+        (fields, offsets, rows4, keep4, pos4))
+
+    def scatter(i, dense):
+        dest = offsets + jnp.where(keep4[i], pos4[i] * R, LR) + rows4
+        return dense.at[dest].set(fields[i])
+
+    init = jnp.concatenate([jnp.full(F, CONST, jnp.int32), jnp.zeros(3 * F, jnp.int32)])
+    dense = lax.fori_loop(0, top, scatter, init).reshape(4, L + 1, R)[:, :L]
+    return Tape(dense[0], dense[1], dense[2], lax.bitcast_convert_type(dense[3], jnp.float32),
+                new_n, tape.opset, tape.n_vars)
+
+
+def with_opset(tape: Tape, opset) -> Tape:
+    """The tape allowed to hold the opcodes of `opset` too (codes or names): tapes that
+    share an opset and a padded length share one compiled evaluator."""
+    codes = {CODE[o] if isinstance(o, str) else int(o) for o in opset}
+    return Tape(tape.op, tape.a, tape.b, tape.imm, tape.n,
+                tuple(sorted(set(tape.opset) | codes)), tape.n_vars)
+
+
+def take_regions(tape: Tape, index) -> Tape:
+    """The tapes of a batch at `index` ([R'] ints; a single tape is broadcast)."""
+    k = jnp.shape(index)[0]
+    if tape.op.ndim == 1:
+        L = tape.length
+        return Tape(*(jnp.broadcast_to(x[:, None], (L, k)) for x in
+                      (tape.op, tape.a, tape.b, tape.imm)),
+                    jnp.broadcast_to(tape.n, (k,)), tape.opset, tape.n_vars)
+    return Tape(*(x[:, index] for x in (tape.op, tape.a, tape.b, tape.imm)),
+                tape.n[index], tape.opset, tape.n_vars)
+
+
+def resize(tape: Tape, length: int) -> Tape:
+    """The tapes padded (``const 0``) or cut to `length` instructions (callers cut only
+    past every n)."""
+    L = tape.length
+    if length == L:
+        return tape
+    if length < L:
+        return Tape(*(x[:length] for x in (tape.op, tape.a, tape.b, tape.imm)), tape.n,
+                    tape.opset, tape.n_vars)
+    pad = [(0, length - L)] + [(0, 0)] * (tape.op.ndim - 1)
+    return Tape(*(jnp.pad(x, pad) for x in (tape.op, tape.a, tape.b, tape.imm)), tape.n,
+                tape.opset, tape.n_vars)

@@ -1,0 +1,191 @@
+"""Instruction tapes (jaxiso.arith._tape) and the program path (jaxiso.implicit.program).
+
+References: the straight path (the user's function run op by op, eagerly: the same
+float32 operations in the same order), `ji.extend` for intervals, and float64 numpy
+(tests/reference_program64.py) for hits.
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from reference_program64 import first_inside64, vm64
+
+import jaxiso as ji
+from jaxiso.arith import _tape
+from jaxiso.implicit import program as P
+from jaxiso.implicit import surfaces
+from jaxiso.implicit.generate import csg_program
+
+SURFACES = ["sphere", "barth_sextic", "tangle", "sin.blob", "water", "morph"]
+
+
+def _boxes(rng, lo, hi, n, rad=0.15):
+    c = rng.uniform(lo, hi, (n, 3)).astype(np.float32)
+    r = rng.uniform(0, rad, (n, 3)).astype(np.float32) * (np.asarray(hi) - np.asarray(lo))
+    return c - r, c + r
+
+
+@pytest.mark.parametrize("name", SURFACES)
+def test_catalogue_points_bitwise_and_intervals_match_extend(name):
+    s = surfaces.get(name)
+    tape = P.tape_of(s.f)
+    rng = np.random.default_rng(1)
+    lo, hi = np.asarray(s.lo, np.float32), np.asarray(s.hi, np.float32)
+    p = rng.uniform(lo, hi, (300, 3)).astype(np.float32)
+    w = np.float32(s.w)
+    got = np.asarray(P.evaluate_points(tape, p[:, 0], p[:, 1], p[:, 2], w))
+    straight = np.asarray(jax.vmap(lambda x, y, z: s.f(x, y, z, w))(p[:, 0], p[:, 1], p[:, 2]))
+    np.testing.assert_array_equal(got, straight)  # same operations, same order
+    blo, bhi = _boxes(rng, lo, hi, 200)
+    box = [ji.Interval(blo[:, k], bhi[:, k]) for k in range(3)]
+    r = P.evaluate_intervals(tape, *box, w)
+    F = ji.extend(s.f, "interval")
+    ref = F(*box, w)
+    scale = 1.0 + np.abs(np.asarray(ref.lo)) + np.abs(np.asarray(ref.hi))
+    ok = np.isfinite(np.asarray(ref.lo))
+    assert np.all(np.abs(np.asarray(r.lo) - np.asarray(ref.lo))[ok] <= 1e-5 * scale[ok])
+    assert np.all(np.abs(np.asarray(r.hi) - np.asarray(ref.hi))[ok] <= 1e-5 * scale[ok])
+    # enclosure of sampled points of every box
+    u = rng.uniform(size=(8, 200, 3)).astype(np.float32)
+    q = blo + u * (bhi - blo)
+    vals = np.asarray(P.evaluate_points(tape, q[..., 0], q[..., 1], q[..., 2], w))
+    fin = np.isfinite(vals)
+    tol = 1e-5 * scale
+    assert np.all(((vals >= np.asarray(r.lo) - tol) & (vals <= np.asarray(r.hi) + tol))[fin])
+
+
+def test_csg_program_points_intervals_and_float64():
+    prog = csg_program(30, seed=3)
+    tape = P.tape_of(prog)
+    assert int(tape.n) <= len(prog)
+    rng = np.random.default_rng(2)
+    p = rng.uniform(-1.2, 1.2, (500, 3)).astype(np.float32)
+    got = np.asarray(P.evaluate_points(tape, p[:, 0], p[:, 1], p[:, 2]))
+    straight = np.asarray(jax.vmap(prog)(p[:, 0], p[:, 1], p[:, 2]))
+    np.testing.assert_array_equal(got, straight)
+    ref64 = vm64(prog.ops, *(p[:, k].astype(np.float64) for k in range(3)))
+    assert np.max(np.abs(got - ref64)) < 1e-5
+    blo, bhi = _boxes(rng, -1.2, 1.2, 100, 0.05)
+    r = P.evaluate_intervals(tape, *[ji.Interval(blo[:, k], bhi[:, k]) for k in range(3)])
+    u = rng.uniform(size=(16, 100, 3))
+    q = blo + u * (bhi - blo)
+    v64 = vm64(prog.ops, q[..., 0], q[..., 1], q[..., 2])
+    assert np.all(v64 >= np.asarray(r.lo) - 1e-5) and np.all(v64 <= np.asarray(r.hi) + 1e-5)
+
+
+def test_pruned_tapes_give_the_same_values_in_their_region():
+    prog = csg_program(40, seed=5)
+    tape = P.tape_of(prog)
+    rng = np.random.default_rng(3)
+    R = 32
+    blo, bhi = _boxes(rng, -1.1, 1.1, R, 0.04)
+    coords = [ji.Interval(jnp.asarray(blo[:, k])[:, None], jnp.asarray(bhi[:, k])[:, None])
+              for k in range(3)] + [ji.Interval(0.0, 0.0)]
+    batch = _tape.take_regions(tape, jnp.zeros(R, jnp.int32))
+    f, chosen = jax.jit(_tape.evaluate, static_argnames="record")(batch, coords, record=True)
+    pruned = jax.jit(_tape.prune)(batch, chosen[:, :, 0])
+    n = np.asarray(pruned.n)
+    assert np.all(n <= int(tape.n)) and n.mean() < 0.5 * int(tape.n)
+    u = rng.uniform(size=(R, 64, 3)).astype(np.float32)
+    q = (blo[:, None] + u * (bhi - blo)[:, None]).astype(np.float32)
+    pts = [jnp.asarray(q[..., k]) for k in range(3)] + [jnp.float32(0)]
+    ev = jax.jit(_tape.evaluate)
+    full = np.asarray(ev(batch, pts))
+    short = np.asarray(ev(pruned, pts))
+    np.testing.assert_array_equal(short, full)
+    # the pruned tape's interval on its own box still encloses (and is no wider)
+    g = ev(pruned, coords)
+    assert np.all(np.asarray(g.lo) >= np.asarray(f.lo) - 1e-6)
+    assert np.all(np.asarray(g.hi) <= np.asarray(f.hi) + 1e-6)
+
+
+def test_one_compiled_evaluator_runs_any_program_of_a_bucket():
+    a = P.tape_of(csg_program(10, seed=0))
+    b = P.tape_of(csg_program(10, seed=1))
+    L = max(a.length, b.length)
+    ops = set(a.opset) | set(b.opset)
+    a, b = (_tape.with_opset(_tape.resize(t, L), ops) for t in (a, b))
+    traces = []
+
+    @jax.jit
+    def ev(tape, coords):
+        traces.append(1)
+        return _tape.evaluate(tape, coords)
+
+    x = jnp.linspace(-1, 1, 16)[None]
+    for t in (a, b):
+        ev(_tape.take_regions(t, jnp.zeros(1, jnp.int32)), [x, x, x, jnp.float32(0)])
+    assert len(traces) == 1
+
+
+def test_unsupported_primitives_are_named():
+    with pytest.raises(NotImplementedError, match="'lt'"):
+        P.tape_of(lambda x, y, z: jnp.where(x < y, x, z))
+    with pytest.raises(NotImplementedError, match="no tape opcode"):
+        P.tape_of(ji.implicit.load_vm("a var-x\nb tan a\n"))
+
+
+CIRCLES = """a var-x
+b var-y
+c const 0.3
+d sub a c
+e square d
+f square b
+g add e f
+h sqrt g
+r const 0.45
+i sub h r
+j const -0.35
+k sub a j
+l square k
+m add l f
+n sqrt m
+o sub n r
+p min i o
+"""
+
+
+def test_extruded_2d_program_matches_pixel_centres():
+    prog = ji.implicit.load_vm(CIRCLES)
+    cam = ji.Camera.orthographic_view((0, 0, 3), (0, 0, 0), (0, 1, 0), 1.0, 64, 64)
+    res = P.cast(prog, (-1, -1, -1), (1, 1, 1), cam)
+    assert res.stats["schedule"]["samples"] == 1  # cast as 2D: no z in the program
+    o = np.asarray(cam.rays().origin, np.float64)
+    ref = vm64(prog.ops, o[..., 0], o[..., 1], o[..., 2]) < 0
+    np.testing.assert_array_equal(np.asarray(res.hit), ref)
+    np.testing.assert_allclose(np.asarray(res.t)[ref], 2.0, rtol=1e-6)
+
+
+def test_perspective_csg_hits_agree_with_float64_sampling():
+    prog = csg_program(25, seed=7)
+    cam = ji.Camera.look_at((3.0, 2.2, 1.8), (0, 0, 0), fov=45.0, width=32, height=32)
+    lo, hi = (-1.4,) * 3, (1.4,) * 3
+    sched = P.Schedule(root_tile=8, root_slabs=8, splits=((2, 2), (2, 2)), samples=8,
+                       rounds=2)
+    res = P.cast(prog, lo, hi, cam, schedule=sched)
+    rays = cam.rays()
+    ref_hit, ref_t = first_inside64(prog.ops, np.asarray(rays.origin).reshape(-1, 3),
+                                    np.asarray(rays.direction).reshape(-1, 3), lo, hi,
+                                    samples=512)
+    hit = np.asarray(res.hit).reshape(-1)
+    t = np.asarray(res.t).reshape(-1)
+    assert 0.1 < ref_hit.mean() < 0.9
+    assert np.mean(hit == ref_hit) >= 0.99
+    both = hit & ref_hit
+    step = 2 * 1.4 * np.sqrt(3) / 512
+    assert np.median(np.abs(t[both] - ref_t[both])) < step
+    levels = res.stats["levels"]
+    assert levels[-1]["tape_mean"] < levels[0]["tape_mean"] < int(P.tape_of(prog).n)
+    # without pruning: the same hits
+    res2 = P.cast(prog, lo, hi, cam, schedule=sched, prune=False)
+    np.testing.assert_array_equal(np.asarray(res2.hit), np.asarray(res.hit))
+
+
+def test_tape_dataclass_roundtrip():
+    t = P.tape_of(lambda x, y, z: x * x + y)
+    assert t.n_vars == 4 and int(t.n) == 4  # var x, var y, square, add
+    t2 = dataclasses.replace(t, n=jnp.int32(4))
+    assert float(P.evaluate_points(t2, 2.0, 1.0, 0.0)) == 5.0
