@@ -24,13 +24,31 @@ SAMPLES = 9
 COST_RATIO = 2.0  # affine / interval evaluation cost per piece
 
 
-def choose_arithmetic(g, lo, hi, w, params, rounding: str) -> tuple[str, str]:
-    """(arithmetic, report) for the field g on the box [lo, hi]. Traced inputs (a scene
-    built under jit) cannot be measured: they get "affine", which converges on every f
-    jaxiso extends, and the report says so."""
+_CHOICES: dict = {}  # (f, rounding, box) -> (arithmetic, report): measure once
+
+
+def choose_arithmetic(f, g, lo, hi, w, params, rounding: str) -> tuple[str, str]:
+    """(arithmetic, report) for the field g (of the user's f) on the box [lo, hi].
+    Measured once per f, rounding and box (the choice is a property of the function:
+    later scenes with other params or w reuse it). Traced inputs (a scene built under
+    jit) cannot be measured: they get "affine", which converges on every f jaxiso
+    extends, and the report says so."""
     leaves = [lo, hi, w] + jax.tree_util.tree_leaves(params)
     if any(concrete(x) is None for x in leaves):
         return "affine", "auto: affine (built under a trace: nothing measured)"
+    key = (f, rounding, tuple(np.asarray(lo).tolist()), tuple(np.asarray(hi).tolist()))
+    try:
+        if key in _CHOICES:
+            return _CHOICES[key]
+    except TypeError:  # an unhashable f: measure every time
+        key = None
+    choice = _measure(g, lo, hi, w, params, rounding)
+    if key is not None:
+        _CHOICES[key] = choice
+    return choice
+
+
+def _measure(g, lo, hi, w, params, rounding: str) -> tuple[str, str]:
     rng = np.random.default_rng(0)
     lo_, hi_ = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
     diag = float(np.linalg.norm(hi_ - lo_))

@@ -184,7 +184,7 @@ class ImplicitSurface(_ImplicitOptions):
         # fail early on a bad signature
         as_field(self.f, self.has_params)
         if self.arithmetic == "auto":
-            pick, report = choose_arithmetic(self.field, self.lo, self.hi, self.w,
+            pick, report = choose_arithmetic(self.f, self.field, self.lo, self.hi, self.w,
                                              self.params, self.rounding)
             object.__setattr__(self, "arithmetic", pick)
             object.__setattr__(self, "arithmetic_report", report)
