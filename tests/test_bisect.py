@@ -42,7 +42,7 @@ def stack_bisect(test, d_max, active, max_steps):
             k[i], d[i] = stacks[i].pop()
         w = np.float32(2.0) ** -d.astype(np.float32)  # exact powers of two
         s0, s1 = k.astype(np.float32) * w, (k + 1).astype(np.float32) * w
-        possible, finite, small = (np.asarray(a) for a in test(s0, s1))
+        possible, finite, small = (np.asarray(a) for a in test(s0, s1)[:3])
         for i in live:
             steps[i] += 1
             if possible[i] and finite[i] and (d[i] >= d_max[i] or small[i]):

@@ -227,7 +227,8 @@ def test_two_isovalues_jacobian():
     isos = np.array([0.25, 1.0])
 
     def t_of_isos(isos):
-        scene = ji.ImplicitSurface(radius2, LO, HI, isovalues=isos)
+        # built under jit: name the arithmetic ("auto" could not measure there)
+        scene = ji.ImplicitSurface(radius2, LO, HI, isovalues=isos, arithmetic="interval")
         h = ji.intersect(scene.replace(eps=FINE, rounding="outward"), ji.Rays(*_f32(o, d)))
         return jnp.where(h.hit, h.t, 0.0), h.surface
 

@@ -23,6 +23,7 @@ def sphere(x, y, z, params):
 
 def _scene(**kw):
     kw.setdefault("params", {"r": jnp.float32(1.0)})
+    kw.setdefault("arithmetic", "interval")  # built under vmap below: "auto" can't measure
     return ji.ImplicitSurface(sphere, (-1.5,) * 3, (1.5,) * 3, **kw)
 
 

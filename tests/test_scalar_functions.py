@@ -131,8 +131,12 @@ def test_scalar_function_is_evaluated_on_arrays_through_the_scene():
 
 
 def test_one_number_per_point_is_required():
-    scene = ji.ImplicitSurface(lambda x, y, z: jnp.stack([x, y, z]) @ _W["W1"][:, :1] - 0.5,
-                               (LO,) * 3, (HI,) * 3)
+    def f(x, y, z):
+        return jnp.stack([x, y, z]) @ _W["W1"][:, :1] - 0.5
+
+    with pytest.raises(ValueError, match="per point"):  # arithmetic="auto" evaluates f
+        ji.ImplicitSurface(f, (LO,) * 3, (HI,) * 3)
+    scene = ji.ImplicitSurface(f, (LO,) * 3, (HI,) * 3, arithmetic="interval")
     for method in ("t-bisection", "sampling"):  # through `extend`, through `on_points`
         with pytest.raises(ValueError, match="per point"):
             ji.intersect(scene.replace(method=method), CAM.rays())

@@ -30,18 +30,20 @@ _CHOICES: dict = {}  # (f, rounding, box) -> (arithmetic, report): measure once
 def choose_arithmetic(f, g, lo, hi, w, params, rounding: str) -> tuple[str, str]:
     """(arithmetic, report) for the field g (of the user's f) on the box [lo, hi].
     Measured once per f, rounding and box (the choice is a property of the function:
-    later scenes with other params or w reuse it). Traced inputs (a scene built under
-    jit) cannot be measured: they get "affine", which converges on every f jaxiso
-    extends, and the report says so."""
+    later scenes with other params or w reuse it, under jit too). Traced inputs (a scene
+    built under jit) cannot be measured: unless this f was measured before they get
+    "affine", which converges on every f jaxiso extends, and the report says so."""
+    key = None
+    if concrete(lo) is not None and concrete(hi) is not None:
+        key = (f, rounding, tuple(np.asarray(lo).tolist()), tuple(np.asarray(hi).tolist()))
+        try:
+            if key in _CHOICES:  # also under a trace: what this f got when measured
+                return _CHOICES[key]
+        except TypeError:  # an unhashable f: measure every time
+            key = None
     leaves = [lo, hi, w] + jax.tree_util.tree_leaves(params)
     if any(concrete(x) is None for x in leaves):
         return "affine", "auto: affine (built under a trace: nothing measured)"
-    key = (f, rounding, tuple(np.asarray(lo).tolist()), tuple(np.asarray(hi).tolist()))
-    try:
-        if key in _CHOICES:
-            return _CHOICES[key]
-    except TypeError:  # an unhashable f: measure every time
-        key = None
     choice = _measure(g, lo, hi, w, params, rounding)
     if key is not None:
         _CHOICES[key] = choice

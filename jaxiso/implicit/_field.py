@@ -177,7 +177,8 @@ def root_check(g, w, params, isovalues, policy: str):
     policy "none" (the enclosure alone decides, the seed's rule).
 
     "sign": g - iso changes sign between the piece's ends (point evaluation; a root by
-    the intermediate value theorem). "sign+distance" also accepts a piece whose midpoint
+    the intermediate value theorem; the first and last piece of a segment look half a
+    piece beyond it, so a root on the box's face is kept). "sign+distance" also accepts a piece whose midpoint
     m lies within the piece's length L of the level set at first order,
     ``|g(m) - iso| <= L |grad g(m)|``: surfaces that touch a level without crossing it
     (Steiner's whiskers, where g ~ a r^2 and |g| / |grad g| = r / 2) are found, while a
@@ -193,8 +194,12 @@ def root_check(g, w, params, isovalues, policy: str):
         return q[..., 0], q[..., 1], q[..., 2]
 
     def verify(p, D, s0, s1):
-        f0 = value(*at(p, D, s0), w, params)[..., None] - iso
-        f1 = value(*at(p, D, s1), w, params)[..., None] - iso
+        # a piece at an end of the segment looks half a piece past it: a root on the
+        # box's face (a step of floor exactly there, with the entry point rounded
+        # inside) shows whichever side rounding puts it
+        half = 0.5 * (s1 - s0)
+        f0 = value(*at(p, D, jnp.where(s0 <= 0, s0 - half, s0)), w, params)[..., None] - iso
+        f1 = value(*at(p, D, jnp.where(s1 >= 1, s1 + half, s1)), w, params)[..., None] - iso
         ok = jnp.any(f0 * f1 <= 0, axis=-1)  # NaN compares False: no root there
         if policy == "sign":
             return ok
