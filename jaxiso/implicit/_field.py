@@ -178,8 +178,8 @@ def root_check(g, w, params, isovalues, policy: str):
 
     "sign": g - iso changes sign between the piece's ends (point evaluation; a root by
     the intermediate value theorem; the first and last piece of a segment look half a
-    piece beyond it, so a root on the box's face is kept). "sign+distance" also accepts a piece whose midpoint
-    m lies within the piece's length L of the level set at first order,
+    piece beyond it, so a root on the box's face is kept). "sign+distance" also accepts
+    a piece whose midpoint m lies within the piece's length L of the level set at first order,
     ``|g(m) - iso| <= L |grad g(m)|``: surfaces that touch a level without crossing it
     (Steiner's whiskers, where g ~ a r^2 and |g| / |grad g| = r / 2) are found, while a
     loose enclosure far from the surface is not taken for a hit."""
