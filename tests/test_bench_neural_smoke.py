@@ -86,7 +86,9 @@ def test_tiny_run_writes_json(tmp_path):
     assert len(tg["rows"]) == 3 * len(tg["arithmetics"])
     for r in tg["rows"]:
         assert r["median_ratio"] >= 1.0 - 1e-4 and r["narrower"] == 0  # sound
-    assert len(result["charts"]) == 2
+    # charts need matplotlib (the bench extra); the test extra alone writes none
+    has_mpl = importlib.util.find_spec("matplotlib") is not None
+    assert len(result["charts"]) == (2 if has_mpl else 0)
 
 
 def test_pilot_stands_in_for_a_row_over_budget():
