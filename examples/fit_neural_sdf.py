@@ -31,28 +31,12 @@ import optax
 import jaxiso as ji
 
 WIDTHS = (3, 32, 32, 32, 1)  # inputs, hidden layers, one output
-ACTIVATIONS = {"relu": jax.nn.relu, "softplus": jax.nn.softplus}
+ACTIVATIONS = ("relu", "softplus")
 
-
-def make_mlp(activation: str):
-    """The network as a scalar point function ``mlp(x, y, z, params)``."""
-    act = ACTIVATIONS[activation]
-
-    def mlp(x, y, z, params):
-        h = jnp.stack([x, y, z])
-        for i, layer in enumerate(params):
-            if i:
-                h = act(h)
-            h = h @ layer["A"] + layer["b"]
-        return h[0]
-
-    mlp.__name__ = f"{activation}_mlp"
-    return mlp
-
-
-# built once: a scene's f is a static field compared by identity, so one function per
+# jaxiso's own point-code MLP (h @ A + b, activation between layers), built once per
+# activation: a scene's f is a static field compared by identity, so one function per
 # activation keeps every render of that network on one compiled program
-NETWORKS = {name: make_mlp(name) for name in ACTIVATIONS}
+NETWORKS = {name: ji.implicit.MLP(name, []) for name in ACTIVATIONS}
 
 
 def init_params(key, widths=WIDTHS) -> list:
