@@ -40,20 +40,6 @@ class BoxTest(typing.NamedTuple):
     possible: jax.Array
     finite: jax.Array
     small: jax.Array
-    start: jax.Array | float = 0.0  # no root in the piece's first `start` fraction
-
-
-def _skip_descend(k, d, dmax, start):
-    """The piece to descend to from (k, d) when its first `start` fraction holds no root:
-    the child at depth d + j containing that point, with j = 1 + floor(-log2(1 - start))
-    (clamped to [1, dmax - d]), so a skip past half the piece lands in a quarter, past
-    15/16 in a 32nd. start 0 is the plain descent to (2k, d + 1). Every piece before the
-    landing one lies in the skipped part; the walk pops back up through the rest."""
-    start = jnp.clip(jnp.asarray(start, jnp.float32), 0.0, 0.999)
-    j = 1 + jnp.floor(-jnp.log2(1.0 - start)).astype(jnp.int32)
-    j = jnp.clip(j, 1, jnp.maximum(dmax - d, 1))
-    first = jnp.floor(start * (1 << j).astype(jnp.float32)).astype(jnp.int32)
-    return (k << j) + jnp.minimum(first, (1 << j) - 1), d + j
 
 
 class Result(typing.NamedTuple):
@@ -123,9 +109,6 @@ def _t_step(test, st):
     accept = r.possible & r.finite & ((d >= st["dmax"]) | r.small)
     descend = r.possible & ~accept & (d < st["dmax"])
     k_new, d_new, finished = advance(k, d, accept, descend)
-    k_skip, d_skip = _skip_descend(k, d, st["dmax"], r.start)
-    k_new = jnp.where(descend, k_skip, k_new)
-    d_new = jnp.where(descend, d_skip, d_new)
     return dict(st, k=jnp.where(go, k_new, k), d=jnp.where(go, d_new, d),
                 going=go & ~finished, hit=st["hit"] | (go & accept),
                 steps=st["steps"] + go.astype(jnp.int32))

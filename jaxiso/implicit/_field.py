@@ -112,25 +112,6 @@ def enclosure(F, boxes, w, params, arithmetic: str) -> Interval:
     return aa.to_interval(out) if isinstance(out, Affine) else out
 
 
-def first_root_fraction(out: Affine, isovalues):
-    """The fraction of a ray piece before which no isovalue is reached: `out` is f's
-    affine form in the piece's one noise symbol e in [-1, 1] (``C + G e`` plus the error
-    E), so ``f = iso`` needs ``|C - iso + G e| <= E``, which holds for no e below
-    ``(iso - C - sign(G) E) / G`` (the nearest end). Returns [...] in [0, 1) (0: no
-    information, e.g. a flat or unbounded form), shrunk by 2^-12 of the piece against
-    rounding."""
-    iso = jnp.asarray(isovalues)
-    C = out.center[..., None] - iso
-    G = out.dev[..., 0][..., None]
-    E = out.err[..., None]
-    slope_ok = jnp.abs(G) > 0
-    safe_G = jnp.where(slope_ok, G, 1.0)
-    e_a = jnp.minimum((-C - E) / safe_G, (-C + E) / safe_G)
-    e_a = jnp.where(slope_ok & jnp.isfinite(e_a), e_a, -1.0)
-    frac = 0.5 * (jnp.min(jnp.clip(e_a, -1.0, 1.0), axis=-1) + 1.0) - 2.0**-12
-    return jnp.clip(frac, 0.0, 0.999)
-
-
 def contains_any(r: Interval, isovalues):
     """possible [...] (an isovalue lies in r) and finite [...] (r is bounded)."""
     iso = jnp.asarray(isovalues)
@@ -231,5 +212,5 @@ def point_normal(g, p, w, params, direction, stencil=None):
 
 
 __all__ = ["as_field", "on_points", "root_check", "VERIFY", "ray_boxes", "enclosure",
-           "contains_any", "first_root_fraction", "extended", "clip_to_box", "ray_segments",
+           "contains_any", "extended", "clip_to_box", "ray_segments",
            "point_normal", "ia"]

@@ -28,15 +28,14 @@ from .._core import (
     pytree_dataclass,
     static_field,
 )
-from ..arith import Affine, aa
 from . import _bisect
 from ._auto import choose_arithmetic
 from ._field import (
     VERIFY,
     as_field,
     contains_any,
+    enclosure,
     extended,
-    first_root_fraction,
     on_points,
     point_normal,
     ray_boxes,
@@ -237,14 +236,9 @@ def _interval_method(F, scene, p, D, inside, lanes=None):
 
     def test(p, D, s0, s1):
         boxes = ray_boxes(p, D, s0, s1, scene.arithmetic)
-        out = F(*boxes, scene.w, params=scene.params)
-        r = aa.to_interval(out) if isinstance(out, Affine) else out
+        r = enclosure(F, boxes, scene.w, scene.params, scene.arithmetic)
         possible, finite = contains_any(r, scene.isovalues)
-        # an affine form in the ray's symbol also says where along the piece a root can
-        # first be: the walk skips ahead to it (each isovalue's nearest feasible end)
-        start = (first_root_fraction(out, scene.isovalues) if isinstance(out, Affine)
-                 else 0.0)
-        return _bisect.BoxTest(possible, finite, (r.hi - r.lo) < tol, start)
+        return _bisect.BoxTest(possible, finite, (r.hi - r.lo) < tol)
 
     verify = root_check(scene.field, scene.w, scene.params, scene.isovalues, scene.verify)
     return run_bisection(scene.method, test, p, D, inside, scene.eps, scene.max_steps,
