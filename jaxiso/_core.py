@@ -204,10 +204,14 @@ class Plan:
         ``while_loop`` runs until its slowest ray is done, so coherent packets waste least).
       lanes: None (packets), or the width of persistent lanes with refill that run the
         whole batch as one queue (faster per frame for large images, slower to compile).
+      tape: run the scene's program as an instruction tape, breadth-first over ray
+        groups with per-region pruning (`ImplicitSurface` of a long program: its
+        `preferred_plan` says when). Host-driven: needs concrete inputs (not under jit).
     """
 
     tile: int = 8
     lanes: int | None = None
+    tape: bool = False
 
     def __post_init__(self):
         if isinstance(self.tile, bool) or not isinstance(self.tile, (int, np.integer)) \
@@ -216,7 +220,13 @@ class Plan:
         if self.lanes is not None and (isinstance(self.lanes, bool) or not isinstance(
                 self.lanes, (int, np.integer)) or self.lanes < 1):
             raise ValueError(f"Plan.lanes must be None or a positive int, got {self.lanes!r}")
+        if not isinstance(self.tape, (bool, np.bool_)):
+            raise ValueError(f"Plan.tape must be a bool, got {self.tape!r}")
+        if self.tape and self.lanes is not None:
+            raise ValueError("Plan.tape runs its own breadth-first traversal: lanes must "
+                             "be None")
         object.__setattr__(self, "tile", int(self.tile))
+        object.__setattr__(self, "tape", bool(self.tape))
         if self.lanes is not None:
             object.__setattr__(self, "lanes", int(self.lanes))
 

@@ -30,6 +30,8 @@ from .._core import (
 )
 from . import _bisect
 from ._auto import choose_arithmetic
+from ._tape_rays import intersect_rays
+from .program import long_program_tape, tape_of
 from ._field import (
     VERIFY,
     as_field,
@@ -182,6 +184,12 @@ class ImplicitSurface(_ImplicitOptions):
         super()._validate()
         # fail early on a bad signature
         as_field(self.f, self.has_params)
+        if self.arithmetic == "auto" and self._long_tape() is not None:
+            # measuring would compile the straight extension of a long program (minutes)
+            object.__setattr__(self, "arithmetic", "interval")
+            object.__setattr__(self, "arithmetic_report", (
+                f"auto: interval (a program of {int(self._long_tape().n)} instructions: "
+                "it runs on the tape path, in interval arithmetic; nothing measured)"))
         if self.arithmetic == "auto":
             pick, report = choose_arithmetic(self.f, self.field, self.lo, self.hi, self.w,
                                              self.params, self.rounding)
@@ -192,6 +200,30 @@ class ImplicitSurface(_ImplicitOptions):
     def field(self):
         """``g(x, y, z, w, params)``."""
         return as_field(self.f, self.has_params)
+
+    def _long_tape(self):
+        """f's instruction tape when f is a long program without params (else None)."""
+        if self.has_params:
+            return None
+        return long_program_tape(self.f)
+
+    def preferred_plan(self, n_rays: int, backend: str) -> Plan:
+        """Long programs (`program.TAPE_CROSSOVER` instructions or more) in interval
+        t-/K-bisection with the seed's rounding run on the tape path; others as measured
+        per arithmetic and backend."""
+        if (self.method in ("t-bisection", "k-bisection") and self.arithmetic == "interval"
+                and self.rounding == "fast" and self._long_tape() is not None):
+            return Plan(tile=32, tape=True)
+        return super().preferred_plan(n_rays, backend)
+
+    def intersect_tape(self, rays, t_min, t_max, stats: dict | None = None) -> Hits:
+        """First hits of rays [N] on the tape path (`Plan.tape`): concrete inputs only."""
+        tape = self._long_tape()
+        if tape is None:
+            tape = tape_of(self.f) if not self.has_params else None
+        if tape is None:
+            raise ValueError("the tape path runs functions without params")
+        return intersect_rays(self, tape, rays, t_min, t_max, stats)
 
     def __call__(self, x, y, z):
         """The field f at points x, y, z (arrays of any broadcastable shapes, evaluated

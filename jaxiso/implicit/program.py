@@ -51,6 +51,30 @@ def prefers_tape(tape: Tape) -> bool:
     return int(tape.n) >= TAPE_CROSSOVER
 
 
+_TAPES: dict = {}  # f -> its tape, or None (not a tape program): built once per function
+
+
+def long_program_tape(f) -> Tape | None:
+    """The tape of ``f(x, y, z[, w])`` when it is a program the tape path should run
+    (at least `TAPE_CROSSOVER` instructions, every operation a tape opcode), else None.
+    Built once per function (tracing a long program takes seconds)."""
+    try:
+        if f in _TAPES:
+            return _TAPES[f]
+    except TypeError:  # unhashable: not cached
+        return _long_tape(f)
+    _TAPES[f] = _long_tape(f)
+    return _TAPES[f]
+
+
+def _long_tape(f):
+    try:
+        tape = tape_of(f)
+    except (NotImplementedError, TypeError, ValueError):
+        return None  # params, array code, selects...: the straight path runs it
+    return tape if prefers_tape(tape) else None
+
+
 # --------------------------------------------------------------------------- tapes
 
 _VM_UNARY = {"neg": "neg", "abs": "abs", "square": "square", "sqrt": "sqrt", "exp": "exp",
@@ -256,14 +280,15 @@ def _region_boxes(frame, lo, hi, ty, tx, T, s0, s1, H, W, ortho):
     return [Interval(blo[..., k], bhi[..., k]) for k in range(3)], ok
 
 
-def _chunked_eval(tapes, coords, record, budget):
+def _chunked_eval(tapes, coords, record, budget, min_chunks=1):
     """`_tape.evaluate` over region chunks so that the register file stays within
-    `budget` elements (R is a power of two)."""
+    `budget` elements (R is a power of two), in at least `min_chunks` chunks (each runs
+    as many instructions as its longest tape: regions sorted by tape length gain)."""
     L, R = tapes.op.shape
     P = jnp.broadcast_shapes(*[jnp.shape(c.lo if isinstance(c, Interval) else c)
                                for c in coords])[-1]
     chunks = 1
-    while R % (2 * chunks) == 0 and L * (R // chunks) * P > budget:
+    while R % (2 * chunks) == 0 and (L * (R // chunks) * P > budget or chunks < min_chunks):
         chunks *= 2
     if chunks == 1:
         return _tape.evaluate(tapes, coords, record)

@@ -10,15 +10,18 @@ vmap over a whole 512x512 image).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
+import warnings
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._core import Hits, Plan, Rays, Scene, miss_like
 
-__all__ = ["Plan", "plan_for", "intersect", "to_tiles", "from_tiles"]
+__all__ = ["Plan", "plan_for", "intersect", "to_tiles", "from_tiles", "morton_order"]
 
 
 def plan_for(scene, n_rays: int, backend: str | None = None) -> Plan:
@@ -63,7 +66,29 @@ def intersect(scene, rays: Rays, *, t_min=0.0, t_max=jnp.inf, plan: Plan | None 
         raise TypeError(f"plan must be a jaxiso.Plan, got {type(plan).__name__}")
     t_min = jnp.broadcast_to(jnp.asarray(t_min, jnp.float32), shape)
     t_max = jnp.broadcast_to(jnp.asarray(t_max, jnp.float32), shape)
+    plan = runnable_plan(plan, scene, (scene, rays, t_min, t_max), n)
+    if plan.tape:
+        return intersect_traced(scene, rays, t_min, t_max, plan)
     return _intersect(scene, rays, t_min, t_max, plan)
+
+
+def runnable_plan(plan: Plan, scene, inputs, n_rays: int) -> Plan:
+    """`plan`, or when it is a tape plan and `inputs` hold traced values (jit, vmap,
+    grad: the host-driven tape path needs concrete ones), the scene's straight plan,
+    with a warning (a long program compiles for minutes on the straight path)."""
+    if not plan.tape:
+        return plan
+    if not hasattr(scene, "intersect_tape"):
+        raise TypeError(f"Plan(tape=True) runs ImplicitSurface programs only, not "
+                        f"{type(scene).__name__}")
+    if not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(inputs)):
+        return plan
+    warnings.warn(
+        "this scene's long program runs on the tape path, which is host-driven and needs "
+        "concrete inputs; under jit/vmap/grad it is compiled straight instead (compile "
+        "time and memory grow with the program). Call intersect/render outside "
+        "transformations to use the tape path.", stacklevel=3)
+    return dataclasses.replace(plan, tape=False, tile=8)
 
 
 @functools.partial(jax.jit, static_argnums=(4,))
@@ -72,9 +97,15 @@ def _intersect(scene, rays, t_min, t_max, plan):
 
 
 def intersect_traced(scene, rays: Rays, t_min, t_max, plan: Plan) -> Hits:
-    """`intersect` without the checks and the jit (for callers already under jit)."""
+    """`intersect` without the checks and the jit (for callers already under jit; a
+    tape plan runs eagerly: its driver is on the host)."""
     shape = rays.shape
     n = math.prod(shape)
+    if plan.tape:
+        flat = rays.reshape((n,))
+        hits = scene.intersect_tape(flat, jnp.broadcast_to(t_min, shape).reshape(n),
+                                    jnp.broadcast_to(t_max, shape).reshape(n))
+        return hits.reshape(shape)
     packet = n if plan.lanes else max(1, min(plan.packet, n))
     n_packets = -(-n // packet)
     pad = n_packets * packet - n
@@ -122,6 +153,17 @@ def to_tiles(x, tile: int):
     x = x.reshape((th, tile, tw, tile) + x.shape[2:])
     x = jnp.moveaxis(x, 2, 1)
     return x.reshape((th * tw * tile * tile,) + x.shape[4:])
+
+
+def morton_order(tile: int) -> np.ndarray:
+    """Permutation of a row-major tile x tile block (tile a power of 2) into Z-order:
+    every run of 4^k consecutive entries is a 2^k x 2^k square."""
+    i, j = np.meshgrid(np.arange(tile), np.arange(tile), indexing="ij")
+    key = np.zeros_like(i)
+    for bit in range(int(tile).bit_length()):
+        key |= ((j >> bit) & 1) << (2 * bit)
+        key |= ((i >> bit) & 1) << (2 * bit + 1)
+    return np.argsort(key.reshape(-1), kind="stable")
 
 
 def from_tiles(x, tile: int, height: int, width: int):

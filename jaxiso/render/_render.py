@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -20,7 +21,8 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from .._camera import Camera
 from .._core import Plan, Rays, concrete, facing, pytree_dataclass
 from ._image import Image
-from ._plan import _check_scene, from_tiles, intersect_traced, plan_for, to_tiles
+from ._plan import (_check_scene, from_tiles, intersect_traced, morton_order, plan_for,
+                    runnable_plan, to_tiles)
 
 __all__ = ["Light", "Shading", "render", "DEFAULT_COLORS"]
 
@@ -138,7 +140,15 @@ def render(scene, camera: Camera, *, shading: Shading | None = None,
     plan = plan_for(scene, -(-camera.width * camera.height // n_dev)) if plan is None else plan
     if not isinstance(plan, Plan):
         raise TypeError(f"plan must be a jaxiso.Plan, got {type(plan).__name__}")
-    img = _render(scene, camera, shading, light, plan, mesh)
+    plan = runnable_plan(plan, scene, (scene, camera, shading, light),
+                         camera.width * camera.height)
+    if plan.tape:
+        if mesh is not None:
+            warnings.warn("a tape plan (long program) renders on the default device only",
+                          stacklevel=2)
+        img = _render_tape(scene, camera, shading, light, plan)
+    else:
+        img = _render(scene, camera, shading, light, plan, mesh)
     if isinstance(img, jax.core.Tracer):
         return img
     return Image(jax.device_get(img))
@@ -175,6 +185,24 @@ def _render(scene, camera, shading, light, plan, mesh):
     else:
         colors = _sharded(shade_all, mesh, o, d, plan.packet)
     return from_tiles(colors, tile, h, w)
+
+
+def _render_tape(scene, camera, shading, light, plan):
+    """`_render` for a tape plan, eagerly (the tape path's driver is on the host): rays
+    in Z-order within plan.tile tiles, so that every ray group the traversal forms is a
+    square of pixels."""
+    tile = plan.tile
+    rays = camera.rays()
+    order = morton_order(tile)
+    undo = np.argsort(order)
+
+    def zorder(x, perm):
+        return x.reshape(-1, tile * tile, x.shape[-1])[:, perm].reshape(-1, x.shape[-1])
+
+    o = zorder(to_tiles(rays.origin, tile), order)
+    d = zorder(to_tiles(rays.direction, tile), order)
+    colors = shade_rays(scene, Rays(o, d), shading, light, plan)
+    return from_tiles(zorder(colors, undo), tile, camera.height, camera.width)
 
 
 def _sharded(fn, mesh, o, d, packet):

@@ -1,0 +1,259 @@
+"""Level sets of long programs on the tape path: any batch of rays, breadth-first.
+
+`ImplicitSurface` scenes whose program is long (`program.TAPE_CROSSOVER` instructions or
+more) run here instead of inlining f's interval extension into XLA (whose compile time and
+memory grow with the program). Same answer as t-bisection, found breadth-first:
+
+* A region is a group of consecutive rays (a power of 4 of them) and a slab [s0, s1] of
+  each ray's own segment in the box (p + s D, s in [0, 1]). Its box is the hull of the
+  group's slab end points (each ray's slab is a line piece, so the hull of the ends holds
+  it), padded outward.
+* Level by level every surviving region splits into 4 ray groups x 2 slabs (the root:
+  1024 rays x 4 slabs), down to single rays, then quarters its slab until a piece is
+  at most eps long: the pieces t-bisection ends on (dyadic fractions of the segment, Eq.
+  6.19). Each child is classified with its parent's tape in interval arithmetic; a child
+  whose enclosure holds no isovalue is dropped, the others are compacted (bucketed sizes)
+  and get their parent's tape pruned by their own min/max choices.
+* The final pieces are verified like the straight path's (`ImplicitSurface.verify`:
+  a sign change of f - iso between the piece's ends, or the first-order distance at its
+  midpoint), and each ray keeps its nearest; value and gradient (normal) come from the
+  piece's pruned tape at the piece's midpoint (forward-mode through the evaluator).
+
+The driver runs on the host (each level is a jitted call on bucketed shapes), so it needs
+concrete inputs: under jit the scene runs the straight path (`render` / `intersect` say so).
+Rays that share a group should be near each other (`render` orders them in Z-order tiles).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._core import Hits, Rays, unit_or_facing
+from ..arith import _tape
+from ..arith._interval import Interval
+from ..arith._tape import Tape
+from ._bisect import depth_for, piece_width
+from ._field import ray_segments
+from .program import _chunked_eval, _survivors
+
+__all__ = ["intersect_rays", "ROOT_GROUP", "ROOT_SLABS"]
+
+ROOT_GROUP = 1024  # rays per root region (a 32 x 32 tile in Z-order)
+ROOT_SLABS = 4
+# Tapes padded to at most this many instructions are no longer pruned: on short tapes a
+# pruning pass costs more than the instructions it saves (CSG-60 at 96^2: 0.07 s per
+# level pruning ~20-instruction tapes padded to 128, more than their evaluation saved).
+PRUNE_ABOVE = 128
+_BUDGET = 2**25
+# Regions are sorted by tape length and evaluated in this many chunks: the evaluator runs
+# each chunk to its longest tape, so sorted chunks skip most of a long tail (pruned tapes
+# of one level: mean 34, max 209 instructions on CSG-60).
+_CHUNKS = 8    # register-file elements per evaluation chunk (~300 MB)
+_PAD = 4.0 * 2.0**-24
+
+
+@jax.jit
+def _segments(rays, lo, hi, t_min, t_max, eps):
+    t0, t1, inside, p, D = ray_segments(rays, lo, hi, t_min, t_max)
+    fine = piece_width(depth_for(jnp.linalg.norm(D, axis=-1), eps))  # s-length of a piece
+    return t0, t1, inside, p, D, fine
+
+
+def _any_level(r: Interval, iso):
+    return jnp.any((r.lo[..., None] <= iso) & (iso <= r.hi[..., None]), axis=-1)
+
+
+@functools.partial(jax.jit, static_argnames=("G", "q", "h"))
+def _level(tapes, reg, seg, lo, hi, w, iso, G, q, h):
+    """Split every region (R: groups of G rays) into q ray groups x h slabs, classify the
+    children with the parents' tapes; return children, which hold a level, their choices."""
+    _, _, inside, p, D, fine = seg
+    Gc = G // q
+    sub, k = (a.reshape(-1) for a in jnp.meshgrid(jnp.arange(q), jnp.arange(h),
+                                                 indexing="ij"))
+    g = reg["g"][:, None] * q + sub[None]                      # [R, C]
+    s0p, s1p = reg["s0"][:, None], reg["s1"][:, None]
+    ds = (s1p - s0p) / h
+    s0 = s0p + ds * k[None]
+    s1 = jnp.where(k[None] == h - 1, s1p, s0p + ds * (k[None] + 1))
+    valid = jnp.broadcast_to(reg["valid"][:, None], g.shape)
+    if Gc == 1 and q == 1:
+        # single rays: split each piece into m = min(h, length / last piece) parts, so
+        # that every piece ends exactly as long as t-bisection's last one (both are
+        # powers of 2; a finished piece stays whole)
+        m = jnp.clip((s1p - s0p) / fine[reg["g"]][:, None], 1, h)
+        ds = (s1p - s0p) / m
+        s0 = s0p + ds * k[None]
+        s1 = jnp.where(k[None] == m - 1, s1p, s0p + ds * (k[None] + 1))
+        valid = valid & (k[None] < m)
+    idx = g[..., None] * Gc + jnp.arange(Gc)                  # [R, C, Gc]
+    ok = inside[idx]
+    pr, Dr = p[idx], D[idx]
+    a = pr + s0[..., None, None] * Dr
+    b = pr + s1[..., None, None] * Dr
+    big = jnp.float32(jnp.inf)
+    blo = jnp.min(jnp.where(ok[..., None], jnp.minimum(a, b), big), axis=-2)
+    bhi = jnp.max(jnp.where(ok[..., None], jnp.maximum(a, b), -big), axis=-2)
+    pad = _PAD * jnp.maximum(jnp.abs(blo), jnp.abs(bhi))
+    blo = jnp.maximum(blo - pad, lo)
+    bhi = jnp.minimum(bhi + pad, hi)
+    valid = valid & jnp.any(ok, axis=-1) & jnp.all(blo <= bhi, axis=-1)
+    boxes = [Interval(blo[..., c], bhi[..., c]) for c in range(3)]
+    f, chosen = _chunked_eval(tapes, boxes + [Interval(w, w)], True, _BUDGET, _CHUNKS)
+    amb = valid & _any_level(f, iso)
+    unfinished = amb & ((s1 - s0) > fine[idx[..., 0]])
+    children = dict(g=g, s0=s0, s1=s1)
+    return children, amb, chosen, jnp.stack([jnp.sum(valid), jnp.sum(amb),
+                                              jnp.sum(unfinished)])
+
+
+@jax.jit
+def _prune_sorted(tapes, choices):
+    """`_tape.prune` in `_CHUNKS` chunks of regions (sorted longest first: each chunk's
+    passes run to its own longest tape)."""
+    L, R = tapes.op.shape
+    c = _CHUNKS if R % _CHUNKS == 0 else 1
+    if c == 1:
+        return _tape.prune(tapes, choices)
+
+    def split(x):
+        return jnp.moveaxis(x.reshape(L, c, R // c), 1, 0)
+
+    def merge(x):
+        return jnp.moveaxis(x, 0, 1).reshape(L, R)
+
+    parts = Tape(split(tapes.op), split(tapes.a), split(tapes.b), split(tapes.imm),
+                 tapes.n.reshape(c, R // c), tapes.opset, tapes.n_vars)
+    out = jax.lax.map(lambda args: _tape.prune(*args), (parts, split(choices)))
+    return Tape(merge(out.op), merge(out.a), merge(out.b), merge(out.imm),
+                out.n.reshape(R), tapes.opset, tapes.n_vars)
+
+
+@jax.jit
+def _longest_first(tapes, reg):
+    order = jnp.argsort(-tapes.n)
+    return _tape.take_regions(tapes, order), {k: v[order] for k, v in reg.items()}
+
+
+def _point_eval(tapes, x, y, z, w):
+    return _chunked_eval(tapes, [x, y, z, w], False, _BUDGET, _CHUNKS)
+
+
+@functools.partial(jax.jit, static_argnames=("policy", "n_rays"))
+def _final(tapes, reg, seg, w, iso, policy, n_rays):
+    """Verify every final piece, keep each ray's nearest: (s, value, gradient) per ray."""
+    _, _, inside, p, D, _ = seg
+    g, s0, s1, valid = reg["g"], reg["s0"], reg["s1"], reg["valid"]
+    pr, Dr = p[g], D[g]
+
+    def at(s):
+        q = pr + s[:, None] * Dr
+        return [c[:, None] for c in (q[:, 0], q[:, 1], q[:, 2])]
+
+    sm = 0.5 * (s0 + s1)
+    xm, ym, zm = at(sm)
+    one = jnp.ones_like(xm)
+    zero = jnp.zeros_like(xm)
+    grads = []
+    for e in range(3):
+        tangent = [one if c == e else zero for c in range(3)]
+        fm, d = jax.jvp(lambda x, y, z: _point_eval(tapes, x, y, z, w),
+                        (xm, ym, zm), tuple(tangent))
+        grads.append(d[:, 0])
+    fm = fm[:, 0]
+    grad = jnp.stack(grads, axis=-1)
+    ok = valid
+    if policy != "none":
+        fa = _point_eval(tapes, *at(s0), w)[:, 0]
+        fb = _point_eval(tapes, *at(s1), w)[:, 0]
+        sign = jnp.any((fa[:, None] - iso) * (fb[:, None] - iso) <= 0, axis=-1)
+        if policy == "sign+distance":
+            length = (s1 - s0) * jnp.linalg.norm(Dr, axis=-1)
+            near = jnp.abs(fm[:, None] - iso) <= (length * jnp.linalg.norm(grad, axis=-1)
+                                                  )[:, None]
+            sign = sign | jnp.any(near, axis=-1)
+        ok = ok & sign
+    ray = jnp.where(ok, g, n_rays)
+    best = jnp.full(n_rays, jnp.inf, jnp.float32).at[ray].min(sm, mode="drop")
+    win = ok & (sm == best[jnp.minimum(g, n_rays - 1)])
+    ray = jnp.where(win, g, n_rays)
+    value = jnp.zeros(n_rays, jnp.float32).at[ray].set(fm, mode="drop")
+    gradient = jnp.zeros((n_rays, 3), jnp.float32).at[ray].set(grad, mode="drop")
+    return best, value, gradient
+
+
+@jax.jit
+def _finish(rays, seg, best, value, gradient, iso, levels):
+    t0, t1, inside, _, _, _ = seg
+    hit = inside & jnp.isfinite(best)
+    t = jnp.where(hit, t0 + best * (t1 - t0), jnp.inf)
+    which = jnp.argmin(jnp.abs(value[:, None] - iso[None, :]), axis=-1).astype(jnp.int32)
+    normal = unit_or_facing(gradient, rays.direction)
+    return Hits(t=t, hit=hit, normal=jnp.where(hit[:, None], normal, 0.0),
+                surface=jnp.where(hit, which, -1),
+                steps=jnp.where(inside, levels, 0).astype(jnp.int32))
+
+
+def _schedule(group: int):
+    """(q, h) per level: the root's slabs, ray groups down to single rays, then halvings."""
+    yield 1, ROOT_SLABS
+    while group > 1:
+        yield 4, 2
+        group //= 4
+    while True:
+        yield 1, 4
+
+
+def intersect_rays(scene, tape: Tape, rays: Rays, t_min, t_max, stats: dict | None = None
+                   ) -> Hits:
+    """First hits of rays [N] (concrete arrays) on the level sets of `scene` (an
+    `ImplicitSurface` whose field is `tape`). `stats`, when given, receives per-level
+    region counts and tape lengths."""
+    n = rays.shape[0]
+    group = ROOT_GROUP
+    while group > 1 and group // 4 >= n:
+        group //= 4
+    n_pad = -(-n // group) * group
+    pad = n_pad - n
+    o = jnp.concatenate([rays.origin, jnp.broadcast_to(rays.origin[:1], (pad, 3))])
+    d = jnp.concatenate([rays.direction, jnp.broadcast_to(rays.direction[:1], (pad, 3))])
+    t_min = jnp.concatenate([jnp.broadcast_to(t_min, (n,)), jnp.ones(pad)])
+    t_max = jnp.concatenate([jnp.broadcast_to(t_max, (n,)), jnp.zeros(pad)])
+    seg = _segments(Rays(o, d), scene.lo, scene.hi, t_min, t_max, scene.eps)
+    iso = scene.isovalues
+    w = jnp.float32(scene.w)
+    R = n_pad // group
+    reg = dict(g=jnp.arange(R, dtype=jnp.int32), s0=jnp.zeros(R), s1=jnp.ones(R),
+               valid=jnp.ones(R, bool))
+    tapes = _tape.take_regions(tape, jnp.zeros(R, jnp.int32))
+    G = group
+    levels = []
+    for q, h in _schedule(group):
+        children, amb, chosen, counts = _level(tapes, reg, seg, scene.lo, scene.hi, w,
+                                               iso, G, q, h)
+        n_valid, n_amb, n_unfinished = (int(c) for c in np.asarray(counts))
+        G //= q
+        size = _tape.bucket(max(n_amb, 1), 8, fine=True)
+        tapes, choices, reg = _survivors(tapes, children, amb, chosen, size)
+        if tapes.length > PRUNE_ABOVE:
+            tapes = _prune_sorted(tapes, choices)
+            tapes = _tape.resize(tapes, _tape.bucket(int(jnp.max(tapes.n))))
+        tapes, reg = _longest_first(tapes, reg)
+        if stats is not None:
+            kept = np.asarray(tapes.n)[:n_amb]
+            levels.append(dict(rays_per_region=G, regions=n_valid, kept=n_amb,
+                               tape_mean=float(kept.mean()) if n_amb else 0.0,
+                               tape_max=int(kept.max()) if n_amb else 0))
+        else:
+            levels.append(None)
+        if n_amb == 0 or (G == 1 and n_unfinished == 0):
+            break
+    if stats is not None:
+        stats.update(tape_length=int(tape.n), levels=levels)
+    best, value, gradient = _final(tapes, reg, seg, w, iso, scene.verify, n_pad)
+    hits = _finish(Rays(o, d), seg, best, value, gradient, iso, jnp.int32(len(levels)))
+    return jax.tree_util.tree_map(lambda a: a[:n], hits)
