@@ -1,0 +1,158 @@
+"""The tape path inside `intersect` / `render` (jaxiso.implicit._tape_rays, `Plan.tape`).
+
+References: the straight path (t-bisection with f's interval extension inlined: the same
+pieces, so t must agree exactly), and float64 numpy sampling of the program
+(tests/reference_program64.py) for hit masks.
+"""
+
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from reference_program64 import first_inside64
+
+import jaxiso as ji
+from jaxiso.implicit import program as P
+from jaxiso.implicit import surfaces
+from jaxiso.implicit.generate import csg_program
+
+TAPE = ji.Plan(tile=32, tape=True)
+STRAIGHT = ji.Plan(tile=4)
+
+
+def _compare(a, b, eps):
+    """Hits of the two paths (unit ray directions): same masks; t on the same final piece
+    for nearly every ray, never more than two pieces apart (the paths pad piece boxes
+    differently, so a piece at the edge of containing the level can go either way);
+    normals and surfaces equal where both end on the same piece."""
+    ha, hb = np.asarray(a.hit), np.asarray(b.hit)
+    np.testing.assert_array_equal(ha, hb)
+    both = ha & hb
+    ta, tb = np.asarray(a.t)[both], np.asarray(b.t)[both]
+    same = np.abs(ta - tb) <= 1e-6 * (1 + np.abs(tb))
+    assert same.mean() >= 0.98
+    assert np.all(np.abs(ta - tb) <= 2 * float(eps))
+    dot = np.sum(np.asarray(a.normal)[both] * np.asarray(b.normal)[both], axis=-1)
+    assert np.all(dot[same] > 0.999)
+    np.testing.assert_array_equal(np.asarray(a.surface), np.asarray(b.surface))
+
+
+def test_generated_csg_same_hits_as_straight_and_float64():
+    prog = csg_program(20, seed=1)
+    lo, hi = (-1.6,) * 3, (1.6,) * 3
+    S = ji.ImplicitSurface(prog, lo, hi, arithmetic="interval")
+    cam = ji.Camera.look_at((3.0, 2.5, 2.0), (0, 0, 0), width=40, height=40)
+    rays = cam.rays()
+    tape = ji.intersect(S, rays, plan=TAPE)
+    _compare(tape, ji.intersect(S, rays, plan=STRAIGHT), S.eps)
+    ref_hit, ref_t = first_inside64(prog.ops, np.asarray(rays.origin).reshape(-1, 3),
+                                    np.asarray(rays.direction).reshape(-1, 3), lo, hi,
+                                    samples=1024)
+    hit = np.asarray(tape.hit).reshape(-1)
+    assert 0.2 < ref_hit.mean() < 0.8
+    assert np.mean(hit == ref_hit) >= 0.995
+    both = hit & ref_hit
+    step = 2 * 1.6 * np.sqrt(3) / 1024
+    assert np.max(np.abs(np.asarray(tape.t).reshape(-1)[both] - ref_t[both])) < 2 * step
+
+
+@pytest.mark.parametrize("name", ["sphere", "barth_sextic"])
+def test_catalogue_surfaces_same_hits_both_paths(name):
+    S = surfaces.scene(name, arithmetic="interval",
+                       isovalues=(0.0, 0.25) if name == "sphere" else (0.0,))
+    rays = surfaces.camera(name, 32).rays()
+    _compare(ji.intersect(S, rays, plan=TAPE), ji.intersect(S, rays, plan=STRAIGHT), S.eps)
+
+
+def test_t_min_t_max_and_verify_policy_on_the_tape_path():
+    s = surfaces.get("sphere")
+    S = ji.ImplicitSurface(s.f, s.lo, s.hi, arithmetic="interval")
+    o = jnp.array([[0.0, 0.0, 3.0], [0.0, 0.0, 3.0], [0.0, 0.0, 3.0], [0.3, 0.0, 3.0]])
+    d = jnp.array([[0.0, 0.0, -1.0]] * 4)
+    rays = ji.Rays(o, d)
+    t_min = jnp.array([0.0, 2.5, 0.0, 0.0])
+    t_max = jnp.array([jnp.inf, jnp.inf, 1.5, jnp.inf])
+    a = ji.intersect(S, rays, t_min=t_min, t_max=t_max, plan=TAPE)
+    b = ji.intersect(S, rays, t_min=t_min, t_max=t_max, plan=STRAIGHT)
+    _compare(a, b, S.eps)
+    assert list(np.asarray(a.hit)) == [True, True, False, True]
+    # a flat f whose intervals hold 0 everywhere: no verified hit, "none" accepts them
+    flat = ji.ImplicitSurface(lambda x, y, z: (x - x) * 1e-9 + 1.0 + (y - y), (-1,) * 3,
+                              (1,) * 3, arithmetic="interval")
+    r = ji.Rays(jnp.array([[0.1, 0.2, 3.0]]), jnp.array([[0.0, 0.0, -1.0]]))
+    assert not bool(ji.intersect(flat, r, plan=TAPE).hit[0])
+
+
+def test_long_program_chooses_the_tape_plan_and_renders():
+    prog = csg_program(60, seed=2)  # ~1,300 instructions: above the crossover
+    lo, hi = (-1.6,) * 3, (1.6,) * 3
+    S = ji.ImplicitSurface(prog, lo, hi)
+    assert S.arithmetic == "interval" and "tape path" in S.arithmetic_report
+    assert ji.plan_for(S, 1024).tape
+    cam = ji.Camera.look_at((3.0, 2.5, 2.0), (0, 0, 0), width=24, height=24)
+    hits = ji.intersect(S, cam.rays())
+    ref_hit, _ = first_inside64(prog.ops, np.asarray(cam.rays().origin).reshape(-1, 3),
+                                np.asarray(cam.rays().direction).reshape(-1, 3), lo, hi,
+                                samples=1024)
+    assert np.mean(np.asarray(hits.hit).reshape(-1) == ref_hit) >= 0.995
+    img = np.asarray(ji.render(S, cam, shading=ji.Shading(shadows=True)))
+    assert img.shape == (24, 24, 3) and np.all(np.isfinite(img))
+    bg = np.asarray(ji.Shading().background)
+    drawn = np.any(np.abs(img - bg) > 1e-6, axis=-1).reshape(-1)
+    np.testing.assert_array_equal(drawn, np.asarray(hits.hit).reshape(-1))
+
+
+def test_render_same_image_both_paths_with_shadows():
+    prog = csg_program(12, seed=3)
+    S = ji.ImplicitSurface(prog, (-1.6,) * 3, (1.6,) * 3, arithmetic="interval")
+    cam = ji.Camera.look_at((3.0, 2.5, 2.0), (0, 0, 0), width=20, height=20)
+    shading = ji.Shading(shadows=True)
+    a = np.asarray(ji.render(S, cam, shading=shading, plan=TAPE))
+    b = np.asarray(ji.render(S, cam, shading=shading, plan=STRAIGHT))
+    assert np.mean(np.all(np.abs(a - b) <= 1e-4, axis=-1)) >= 0.99
+
+
+def test_under_jit_the_straight_plan_runs_with_a_warning():
+    s = surfaces.get("sphere")
+    S = ji.ImplicitSurface(s.f, s.lo, s.hi, arithmetic="interval")
+    rays = ji.Rays(jnp.array([[0.0, 0.0, 3.0]]), jnp.array([[0.0, 0.0, -1.0]]))
+    with pytest.warns(UserWarning, match="concrete inputs"):
+        t = jax.jit(lambda r: ji.intersect(S, r, plan=TAPE).t)(rays)
+    eager = ji.intersect(S, rays, plan=TAPE).t
+    np.testing.assert_array_equal(np.asarray(t), np.asarray(eager))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # concrete inputs: no warning
+        ji.intersect(S, rays, plan=TAPE)
+
+
+def test_tape_plan_bad_input():
+    with pytest.raises(ValueError, match="tape must be a bool"):
+        ji.Plan(tape=1)
+    with pytest.raises(ValueError, match="lanes must be None"):
+        ji.Plan(tape=True, lanes=64)
+    vol = ji.VolumeIsosurface(ji.OctreeVolume.from_array(
+        np.zeros((4, 4, 4), np.float32) + np.arange(4.0, dtype=np.float32)), 1.5)
+    with pytest.raises(TypeError, match="ImplicitSurface programs only"):
+        ji.intersect(vol, ji.Rays(jnp.zeros((1, 3)), jnp.ones((1, 3))), plan=TAPE)
+
+
+def _long_sum(x, y, z, r):
+    v = x * x + y * y + z * z - r
+    for k in range(300):
+        v = jnp.minimum(v, (x - 0.001 * k) ** 2 + y * y + z * z - r)
+    return v
+
+
+def test_short_and_param_functions_keep_the_straight_plan():
+    s = surfaces.get("sphere")
+    assert not ji.plan_for(ji.ImplicitSurface(s.f, s.lo, s.hi), 1024).tape
+    box = dict(lo=(-1,) * 3, hi=(1,) * 3, arithmetic="interval")
+    assert ji.plan_for(ji.ImplicitSurface(lambda x, y, z: _long_sum(x, y, z, 0.5), **box),
+                       1024).tape
+    with_params = ji.ImplicitSurface(_long_sum, params=jnp.float32(0.5), **box)
+    assert not ji.plan_for(with_params, 1024).tape  # the tape holds no params
+    outward = ji.ImplicitSurface(lambda x, y, z: _long_sum(x, y, z, 0.5), rounding="outward",
+                                 **box)
+    assert not ji.plan_for(outward, 1024).tape  # tapes round like "fast"
