@@ -14,8 +14,13 @@ fatal):
              centres; and JAX brute-force dense evaluation (jitted point evaluation of the
              program on every pixel centre) in its own subprocess.
   noprune    Prospero 512^2 with pruning off (every region runs the full tape).
-  csg3d      a generated CSG of 400 primitives at 256^2 in perspective: compile, run,
-             hit-mask agreement with float64 dense sampling on 1,500 random pixels.
+  csg3d      a generated CSG of 400 primitives at 256^2 in perspective with
+             `program.cast` (the solid): compile, run, hit-mask agreement with float64
+             dense sampling on 1,500 random pixels.
+  scene3d    the same model through the user's default call, ``ji.render(
+             ji.ImplicitSurface(prog, lo, hi), cam)`` (the scene plans the tape path):
+             first call, median render, median intersect, agreement, per-level tapes.
+Charts: <out>_compile.png (compile time against program length).
 
 Usage: python benchmarks/bench_programs.py [--sections crossover,prospero,noprune,csg3d]
        [--quick] [--out benchmarks/results/programs_cpu.json]
@@ -200,8 +205,65 @@ def case_csg3d(n_prims=400, size=256, seed=1):
                 levels=levels, final=res.stats["final"], peak_rss_mb=_rss_mb())
 
 
+def case_scene3d(n_prims=400, size=256, seed=1, repeats=3):
+    """The user's default call: ``ji.render(ji.ImplicitSurface(prog, lo, hi), cam)`` (the
+    scene plans the tape path for a long program), and ``ji.intersect`` of the camera's
+    rays for the hit mask and the per-level statistics."""
+    import numpy as np
+    from reference_program64 import first_inside64
+
+    import jaxiso as ji
+    from jaxiso.implicit.generate import csg_program
+    prog = csg_program(n_prims, seed)
+    cam = ji.Camera.look_at((3.0, 2.2, 1.8), (0, 0, 0), fov=45.0, width=size, height=size)
+    lo, hi = (-1.4,) * 3, (1.4,) * 3
+    t0 = time.perf_counter()
+    scene = ji.ImplicitSurface(prog, lo, hi)
+    build_s = time.perf_counter() - t0
+    plan = ji.plan_for(scene, size * size)
+    t0 = time.perf_counter()
+    _block(ji.render(scene, cam))
+    render_first_s = time.perf_counter() - t0
+    render_runs = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        _block(ji.render(scene, cam))
+        render_runs.append(time.perf_counter() - t0)
+    rays = cam.rays()
+    hits = ji.intersect(scene, rays)
+    runs = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        hits = _block(ji.intersect(scene, rays))
+        runs.append(time.perf_counter() - t0)
+    stats = {}
+    if plan.tape:  # the same rays in the same order as intersect runs them (Z-order tiles)
+        from jaxiso.render import morton_order, to_tiles
+        order = morton_order(plan.tile)
+
+        def z(x):
+            return to_tiles(x, plan.tile).reshape(-1, plan.tile**2, 3)[:, order].reshape(-1, 3)
+
+        scene.intersect_tape(ji.Rays(z(rays.origin), z(rays.direction)), 0.0, np.inf,
+                             stats=stats)
+    pick = np.random.default_rng(0).choice(size * size, min(1500, size * size), replace=False)
+    ref_hit, ref_t = first_inside64(prog.ops, np.asarray(rays.origin).reshape(-1, 3)[pick],
+                                    np.asarray(rays.direction).reshape(-1, 3)[pick], lo, hi)
+    hit = np.asarray(hits.hit).reshape(-1)[pick]
+    t = np.asarray(hits.t).reshape(-1)[pick]
+    both = hit & ref_hit
+    return dict(primitives=n_prims, instructions=len(prog), size=size, plan=repr(plan),
+                arithmetic_report=scene.arithmetic_report, build_s=build_s,
+                first_call_s=render_first_s, run_s=statistics.median(render_runs),
+                intersect_run_s=statistics.median(runs),
+                hit_agreement=float(np.mean(hit == ref_hit)),
+                hit_fraction=float(ref_hit.mean()),
+                t_error_median=float(np.median(np.abs(t[both] - ref_t[both]))),
+                levels=stats.get("levels"), peak_rss_mb=_rss_mb())
+
+
 CASES = dict(straight=case_straight, tape=case_tape, prospero=case_prospero,
-             dense=case_dense, csg3d=case_csg3d)
+             dense=case_dense, csg3d=case_csg3d, scene3d=case_scene3d)
 
 
 # ------------------------------------------------------------------------ the driver
@@ -230,7 +292,7 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--case")
     ap.add_argument("--case-args", default="[]")
-    ap.add_argument("--sections", default="crossover,prospero,noprune,csg3d")
+    ap.add_argument("--sections", default="crossover,prospero,noprune,csg3d,scene3d")
     ap.add_argument("--quick", action="store_true", help="smaller sizes (smoke run)")
     ap.add_argument("--timeout", type=int, default=600)
     ap.add_argument("--mem-mb", type=int, default=8000)
@@ -272,7 +334,38 @@ def main():
     if "csg3d" in sections:
         args = [400, 256] if not a.quick else [30, 32]
         record("csg3d", run_case("csg3d", args, a.timeout, a.mem_mb))
+    if "scene3d" in sections:
+        args = [400, 256] if not a.quick else [60, 32]
+        record("scene3d", run_case("scene3d", args, a.timeout, a.mem_mb))
+    chart(results, pathlib.Path(a.out).with_suffix(""))
 
+
+def chart(results, stem):
+    """Compile time against program length (the crossover section) as a PNG, when
+    matplotlib (the bench extra) is installed."""
+    rows = results["sections"].get("crossover", [])
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return
+    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    for case, label in (("straight", "straight (XLA inlines the interval extension)"),
+                        ("tape", "tape (one evaluator per padded length)")):
+        pts = sorted((r["instructions"], r["compile_s"]) for r in rows
+                     if r["case"] == case and "compile_s" in r)
+        if pts:
+            ax.plot(*zip(*pts), marker="o", label=label)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("program length (tape instructions)")
+    ax.set_ylabel("compile time (s)")
+    ax.set_title("Compile time against program length (2-core CPU)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(f"{stem}_compile.png", dpi=120)
+    plt.close(fig)
 
 if __name__ == "__main__":
     main()

@@ -18,7 +18,7 @@ from jaxiso.implicit import program as P
 from jaxiso.implicit import surfaces
 from jaxiso.implicit.generate import csg_program
 
-TAPE = ji.Plan(tile=32, tape=True)
+TAPE = ji.Plan(tile=16, tape=True)
 STRAIGHT = ji.Plan(tile=4)
 
 

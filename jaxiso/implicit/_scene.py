@@ -213,7 +213,7 @@ class ImplicitSurface(_ImplicitOptions):
         per arithmetic and backend."""
         if (self.method in ("t-bisection", "k-bisection") and self.arithmetic == "interval"
                 and self.rounding == "fast" and self._long_tape() is not None):
-            return Plan(tile=32, tape=True)
+            return Plan(tile=16, tape=True)
         return super().preferred_plan(n_rays, backend)
 
     def intersect_tape(self, rays, t_min, t_max, stats: dict | None = None) -> Hits:

@@ -72,6 +72,30 @@ def intersect(scene, rays: Rays, *, t_min=0.0, t_max=jnp.inf, plan: Plan | None 
     return _intersect(scene, rays, t_min, t_max, plan)
 
 
+def _tape_hits(scene, rays, t_min, t_max, tile):
+    """The tape path on rays of any shape; an image-shaped batch [H, W] runs in Z-order
+    within tile x tile tiles, so that its ray groups are squares of pixels."""
+    shape = rays.shape
+    if len(shape) != 2:
+        n = math.prod(shape)
+        return scene.intersect_tape(rays.reshape((n,)), t_min.reshape(n),
+                                    t_max.reshape(n)).reshape(shape)
+    order = morton_order(tile)
+    undo = np.argsort(order)
+
+    def z(x):
+        x = to_tiles(x, tile)
+        return x.reshape((-1, tile * tile) + x.shape[1:])[:, order].reshape(x.shape)
+
+    def unz(x):
+        x = x.reshape((-1, tile * tile) + x.shape[1:])[:, undo].reshape(x.shape)
+        return from_tiles(x, tile, *shape)
+
+    hits = scene.intersect_tape(Rays(z(rays.origin), z(rays.direction)), z(t_min),
+                                z(t_max))
+    return jax.tree_util.tree_map(unz, hits)
+
+
 def runnable_plan(plan: Plan, scene, inputs, n_rays: int) -> Plan:
     """`plan`, or when it is a tape plan and `inputs` hold traced values (jit, vmap,
     grad: the host-driven tape path needs concrete ones), the scene's straight plan,
@@ -102,10 +126,8 @@ def intersect_traced(scene, rays: Rays, t_min, t_max, plan: Plan) -> Hits:
     shape = rays.shape
     n = math.prod(shape)
     if plan.tape:
-        flat = rays.reshape((n,))
-        hits = scene.intersect_tape(flat, jnp.broadcast_to(t_min, shape).reshape(n),
-                                    jnp.broadcast_to(t_max, shape).reshape(n))
-        return hits.reshape(shape)
+        return _tape_hits(scene, rays, jnp.broadcast_to(t_min, shape),
+                          jnp.broadcast_to(t_max, shape), plan.tile)
     packet = n if plan.lanes else max(1, min(plan.packet, n))
     n_packets = -(-n // packet)
     pad = n_packets * packet - n
