@@ -344,6 +344,8 @@ def chart(results, stem):
     """Compile time against program length (the crossover section) as a PNG, when
     matplotlib (the bench extra) is installed."""
     rows = results["sections"].get("crossover", [])
+    if not rows:
+        return
     try:
         import matplotlib
         matplotlib.use("Agg")

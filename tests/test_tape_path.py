@@ -14,7 +14,6 @@ import pytest
 from reference_program64 import first_inside64
 
 import jaxiso as ji
-from jaxiso.implicit import program as P
 from jaxiso.implicit import surfaces
 from jaxiso.implicit.generate import csg_program
 

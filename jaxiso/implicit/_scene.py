@@ -30,8 +30,6 @@ from .._core import (
 )
 from . import _bisect
 from ._auto import choose_arithmetic
-from ._tape_rays import intersect_rays
-from .program import long_program_tape, tape_of
 from ._field import (
     VERIFY,
     as_field,
@@ -44,6 +42,8 @@ from ._field import (
     ray_segments,
     root_check,
 )
+from ._tape_rays import intersect_rays
+from .program import long_program_tape, tape_of
 
 __all__ = ["ImplicitSurface", "METHODS", "ARITHMETICS"]
 

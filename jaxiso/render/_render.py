@@ -21,8 +21,15 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from .._camera import Camera
 from .._core import Plan, Rays, concrete, facing, pytree_dataclass
 from ._image import Image
-from ._plan import (_check_scene, from_tiles, intersect_traced, morton_order, plan_for,
-                    runnable_plan, to_tiles)
+from ._plan import (
+    _check_scene,
+    from_tiles,
+    intersect_traced,
+    morton_order,
+    plan_for,
+    runnable_plan,
+    to_tiles,
+)
 
 __all__ = ["Light", "Shading", "render", "DEFAULT_COLORS"]
 
