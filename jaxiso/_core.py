@@ -234,6 +234,10 @@ class Plan:
     def packet(self) -> int:
         return self.tile * self.tile
 
+    def __repr__(self) -> str:
+        tape = ", tape=True" if self.tape else ""
+        return f"Plan(tile={self.tile}, lanes={self.lanes}{tape})"
+
 
 # Persistent lanes pay off on the CPU from 2^16 rays for every traversal measured (Barth
 # sextic at 512^2: 1.60 vs 0.88 Mrays/s in 4x4 tiles; volumes and tets in

@@ -201,11 +201,19 @@ class ImplicitSurface(_ImplicitOptions):
         """``g(x, y, z, w, params)``."""
         return as_field(self.f, self.has_params)
 
-    def _long_tape(self):
-        """f's instruction tape when f is a long program without params (else None)."""
-        if self.has_params:
+    def _params_tree(self):
+        """The treedef of params when every leaf is a scalar (tape coordinates), False
+        when some leaf is an array (no tape), None without params."""
+        if not self.has_params:
             return None
-        return long_program_tape(self.f)
+        leaves, tree = jax.tree_util.tree_flatten(self.params)
+        return tree if all(jnp.ndim(x) == 0 for x in leaves) else False
+
+    def _long_tape(self):
+        """f's instruction tape when f is a long program with scalar params or none
+        (else None)."""
+        tree = self._params_tree()
+        return None if tree is False else long_program_tape(self.f, tree)
 
     def preferred_plan(self, n_rays: int, backend: str) -> Plan:
         """Long programs (`program.TAPE_CROSSOVER` instructions or more) in interval
@@ -217,18 +225,25 @@ class ImplicitSurface(_ImplicitOptions):
         return super().preferred_plan(n_rays, backend)
 
     def intersect_tape(self, rays, t_min, t_max, stats: dict | None = None) -> Hits:
-        """First hits of rays [N] on the tape path (`Plan.tape`): concrete inputs only."""
+        """First hits of rays [N] on the tape path (`Plan.tape`). The traversal runs on
+        the host with concrete values: under eager `jax.grad` / `jvp` it runs on the
+        primal values, and t gets its implicit-function-theorem derivative from the
+        straight point function (normals too); under jit / vmap it cannot run."""
+        tree = self._params_tree()
         tape = self._long_tape()
+        if tape is None and tree is not False:
+            tape = tape_of(self.f, tree)
         if tape is None:
-            tape = tape_of(self.f) if not self.has_params else None
-        if tape is None:
-            raise ValueError("the tape path runs functions without params")
-        return intersect_rays(self, tape, rays, t_min, t_max, stats)
+            raise ValueError("the tape path runs params that are pytrees of scalars only")
+        primal = jax.lax.stop_gradient((self, rays, t_min, t_max))
+        hits = intersect_rays(primal[0], tape, *primal[1:], stats=stats)
+        leaves = jax.tree_util.tree_leaves((self, rays, t_min, t_max))
+        if not any(isinstance(x, jax.core.Tracer) for x in leaves):
+            return hits
+        # differentiated: t and normals from the straight point function at the hits
+        return finish_hits(self.field, self, rays, hits.t, hits.hit, hits.steps,
+                           self.normals)
 
-    def __call__(self, x, y, z):
-        """The field f at points x, y, z (arrays of any broadcastable shapes, evaluated
-        point by point through `on_points`; the isovalues are not subtracted)."""
-        return on_points(self.field)(x, y, z, self.w, self.params)
 
     def intersect_packet(self, rays, t_min, t_max, *, lanes: int | None = None) -> Hits:
         """First hits of one packet of rays [P] (the scene protocol, `jaxiso.Scene`)."""

@@ -72,7 +72,7 @@ def _any_level(r: Interval, iso):
 
 
 @functools.partial(jax.jit, static_argnames=("G", "q", "h"))
-def _level(tapes, reg, seg, lo, hi, w, iso, G, q, h):
+def _level(tapes, reg, seg, lo, hi, rest, iso, G, q, h):
     """Split every region (R: groups of G rays) into q ray groups x h slabs, classify the
     children with the parents' tapes; return children, which hold a level, their choices."""
     _, _, inside, p, D, fine = seg
@@ -107,15 +107,16 @@ def _level(tapes, reg, seg, lo, hi, w, iso, G, q, h):
     bhi = jnp.minimum(bhi + pad, hi)
     valid = valid & jnp.any(ok, axis=-1) & jnp.all(blo <= bhi, axis=-1)
     boxes = [Interval(blo[..., c], bhi[..., c]) for c in range(3)]
-    f, chosen = _chunked_eval(tapes, boxes + [Interval(w, w)], True, _BUDGET, _CHUNKS)
+    f, chosen = _chunked_eval(tapes, boxes + [Interval(v, v) for v in rest], True, _BUDGET,
+                              _CHUNKS)
     amb = valid & _any_level(f, iso)
     if Gc == 1:
         # a piece whose ends straddle a level holds a root: the ray's pieces behind it
         # cannot hold its first hit (t-bisection would never reach them)
         ray = idx[..., 0]
         pa, pb = (pr[..., 0, :] + s[..., None] * Dr[..., 0, :] for s in (s0, s1))
-        fa = _point_eval(tapes, pa[..., 0], pa[..., 1], pa[..., 2], w)
-        fb = _point_eval(tapes, pb[..., 0], pb[..., 1], pb[..., 2], w)
+        fa = _point_eval(tapes, pa[..., 0], pa[..., 1], pa[..., 2], rest)
+        fb = _point_eval(tapes, pb[..., 0], pb[..., 1], pb[..., 2], rest)
         proven = amb & jnp.any((fa[..., None] - iso) * (fb[..., None] - iso) <= 0, axis=-1)
         n_rays = inside.shape[0]
         first = jnp.full(n_rays, jnp.inf).at[jnp.where(proven, ray, n_rays)].min(
@@ -155,12 +156,13 @@ def _longest_first(tapes, reg):
     return _tape.take_regions(tapes, order), {k: v[order] for k, v in reg.items()}
 
 
-def _point_eval(tapes, x, y, z, w):
-    return _chunked_eval(tapes, [x, y, z, w], False, _BUDGET, _CHUNKS)
+def _point_eval(tapes, x, y, z, rest):
+    """The tapes at points; `rest`: the coordinates after x, y, z (w, scalar params)."""
+    return _chunked_eval(tapes, [x, y, z, *rest], False, _BUDGET, _CHUNKS)
 
 
 @functools.partial(jax.jit, static_argnames=("policy", "n_rays"))
-def _final(tapes, reg, seg, w, iso, policy, n_rays):
+def _final(tapes, reg, seg, rest, iso, policy, n_rays):
     """Verify every final piece, keep each ray's nearest: (s, value, gradient) per ray."""
     _, _, inside, p, D, _ = seg
     g, s0, s1, valid = reg["g"], reg["s0"], reg["s1"], reg["valid"]
@@ -177,15 +179,15 @@ def _final(tapes, reg, seg, w, iso, policy, n_rays):
     grads = []
     for e in range(3):
         tangent = [one if c == e else zero for c in range(3)]
-        fm, d = jax.jvp(lambda x, y, z: _point_eval(tapes, x, y, z, w),
+        fm, d = jax.jvp(lambda x, y, z: _point_eval(tapes, x, y, z, rest),
                         (xm, ym, zm), tuple(tangent))
         grads.append(d[:, 0])
     fm = fm[:, 0]
     grad = jnp.stack(grads, axis=-1)
     ok = valid
     if policy != "none":
-        fa = _point_eval(tapes, *at(s0), w)[:, 0]
-        fb = _point_eval(tapes, *at(s1), w)[:, 0]
+        fa = _point_eval(tapes, *at(s0), rest)[:, 0]
+        fb = _point_eval(tapes, *at(s1), rest)[:, 0]
         sign = jnp.any((fa[:, None] - iso) * (fb[:, None] - iso) <= 0, axis=-1)
         if policy == "sign+distance":
             length = (s1 - s0) * jnp.linalg.norm(Dr, axis=-1)
@@ -242,16 +244,21 @@ def intersect_rays(scene, tape: Tape, rays: Rays, t_min, t_max, stats: dict | No
     t_max = jnp.concatenate([jnp.broadcast_to(t_max, (n,)), jnp.zeros(pad)])
     seg = _segments(Rays(o, d), scene.lo, scene.hi, t_min, t_max, scene.eps)
     iso = scene.isovalues
-    w = jnp.float32(scene.w)
+    # the coordinates after x, y, z: w, then the scalar params (tape coordinates 4, ...)
+    rest = tuple(jnp.asarray(v, jnp.float32)
+                 for v in [scene.w, *jax.tree_util.tree_leaves(scene.params)])
+    if len(rest) != tape.n_vars - 3:
+        raise ValueError(f"the tape reads {tape.n_vars} coordinates, the scene gives "
+                         f"{3 + len(rest)}")
     reg = dict(g=jnp.zeros(1, jnp.int32), s0=jnp.zeros(1), s1=jnp.ones(1),
                valid=jnp.ones(1, bool))
     tapes = _tape.take_regions(tape, jnp.zeros(1, jnp.int32))
     G = n_pad
     levels = []
     for q, h in _schedule(n_pad // group, group):
-        children, amb, chosen, counts = _level(tapes, reg, seg, scene.lo, scene.hi, w,
+        children, amb, chosen, counts = _level(tapes, reg, seg, scene.lo, scene.hi, rest,
                                                iso, G, q, h)
-        n_valid, n_amb, n_unfinished = (int(c) for c in np.asarray(counts))
+        n_valid, n_amb, n_unfinished = (int(c) for c in counts)
         G //= q
         size = _tape.bucket(max(n_amb, 1), 8, fine=True)
         tapes, choices, reg = _survivors(tapes, children, amb, chosen, size)
@@ -270,6 +277,6 @@ def intersect_rays(scene, tape: Tape, rays: Rays, t_min, t_max, stats: dict | No
             break
     if stats is not None:
         stats.update(tape_length=int(tape.n), levels=levels)
-    best, value, gradient = _final(tapes, reg, seg, w, iso, scene.verify, n_pad)
+    best, value, gradient = _final(tapes, reg, seg, rest, iso, scene.verify, n_pad)
     hits = _finish(Rays(o, d), seg, best, value, gradient, iso, jnp.int32(len(levels)))
     return jax.tree_util.tree_map(lambda a: a[:n], hits)

@@ -54,24 +54,28 @@ def prefers_tape(tape: Tape) -> bool:
 _TAPES: dict = {}  # f -> its tape, or None (not a tape program): built once per function
 
 
-def long_program_tape(f) -> Tape | None:
-    """The tape of ``f(x, y, z[, w])`` when it is a program the tape path should run
-    (at least `TAPE_CROSSOVER` instructions, every operation a tape opcode), else None.
-    Built once per function (tracing a long program takes seconds)."""
+def long_program_tape(f, params_tree=None) -> Tape | None:
+    """The tape of ``f(x, y, z[, w][, params])`` when it is a program the tape path should
+    run (at least `TAPE_CROSSOVER` instructions, every operation a tape opcode), else None.
+    `params_tree`: None (f takes no params) or the treedef of a params pytree of scalar
+    leaves, which become coordinates 4, 5, ... of the tape. Built once per function
+    (tracing a long program takes seconds)."""
+    key = (f, params_tree)
     try:
-        if f in _TAPES:
-            return _TAPES[f]
+        if key in _TAPES:
+            return _TAPES[key]
     except TypeError:  # unhashable: not cached
-        return _long_tape(f)
-    _TAPES[f] = _long_tape(f)
-    return _TAPES[f]
+        return _long_tape(f, params_tree)
+    _TAPES[key] = _long_tape(f, params_tree)
+    return _TAPES[key]
 
 
-def _long_tape(f):
+def _long_tape(f, params_tree):
     try:
-        tape = tape_of(f)
+        with jax.ensure_compile_time_eval():  # concrete even when asked under a jit trace
+            tape = tape_of(f, params_tree)
     except (NotImplementedError, TypeError, ValueError):
-        return None  # params, array code, selects...: the straight path runs it
+        return None  # array code, selects...: the straight path runs it
     return tape if prefers_tape(tape) else None
 
 
@@ -84,16 +88,26 @@ _VM_BINARY = {"add": "add", "sub": "sub", "mul": "mul", "div": "div", "min": "mi
 _VARS = {"var-x": 0, "var-y": 1, "var-z": 2}
 
 
-def tape_of(f) -> Tape:
+def tape_of(f, params_tree=None) -> Tape:
     """The tape of a program: a `VMProgram`, or a plain-JAX ``f(x, y, z)`` /
-    ``f(x, y, z, w)`` on scalars (no params). Coordinates are x, y, z, w (4 variables).
-    Raises NotImplementedError for an operation the tape has no opcode for."""
+    ``f(x, y, z, w)`` on scalars; with `params_tree` (the treedef of a pytree of scalar
+    params) ``f(x, y, z[, w], params)``, whose params leaves become coordinates 4, 5, ...
+    Coordinates are x, y, z, w (then the params). Raises NotImplementedError for an
+    operation the tape has no opcode for."""
     if isinstance(f, Tape):
         return f
-    if isinstance(f, VMProgram):
+    if isinstance(f, VMProgram) and params_tree is None:
         return _vm_tape(f)
-    g = as_field(f, False)
-    return _tape.from_function(lambda x, y, z, w: g(x, y, z, w, ()), 4)
+    if params_tree is None:
+        g = as_field(f, False)
+        return _tape.from_function(lambda x, y, z, w: g(x, y, z, w, ()), 4)
+    g = as_field(f, True)
+    n = params_tree.num_leaves
+
+    def flat(x, y, z, w, *leaves):
+        return g(x, y, z, w, jax.tree_util.tree_unflatten(params_tree, leaves))
+
+    return _tape.from_function(flat, 4 + n)
 
 
 def _vm_tape(prog: VMProgram) -> Tape:

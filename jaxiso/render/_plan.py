@@ -97,22 +97,35 @@ def _tape_hits(scene, rays, t_min, t_max, tile):
 
 
 def runnable_plan(plan: Plan, scene, inputs, n_rays: int) -> Plan:
-    """`plan`, or when it is a tape plan and `inputs` hold traced values (jit, vmap,
-    grad: the host-driven tape path needs concrete ones), the scene's straight plan,
-    with a warning (a long program compiles for minutes on the straight path)."""
+    """`plan`, or when it is a tape plan and `inputs` hold values that have no concrete
+    value on the host (under jit or vmap: the host-driven tape path cannot run; eager
+    `jax.grad` / `jvp` values have one), the scene's straight plan, with a warning (a
+    long program compiles for minutes on the straight path)."""
     if not plan.tape:
         return plan
     if not hasattr(scene, "intersect_tape"):
         raise TypeError(f"Plan(tape=True) runs ImplicitSurface programs only, not "
                         f"{type(scene).__name__}")
-    if not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(inputs)):
+    if all(_on_host(x) for x in jax.tree_util.tree_leaves(inputs)):
         return plan
     warnings.warn(
         "this scene's long program runs on the tape path, which is host-driven and needs "
-        "concrete inputs; under jit/vmap/grad it is compiled straight instead (compile "
-        "time and memory grow with the program). Call intersect/render outside "
-        "transformations to use the tape path.", stacklevel=3)
+        "concrete inputs; under jit/vmap it is compiled straight instead (compile time "
+        "and memory grow with the program). Call intersect/render outside jit and vmap "
+        "(eager jax.grad is fine) to use the tape path.", stacklevel=3)
     return dataclasses.replace(plan, tape=False, tile=8)
+
+
+def _on_host(x) -> bool:
+    """Whether x has a concrete value (arrays; tracers of eager grad/jvp do, of jit and
+    vmap do not)."""
+    if not isinstance(x, jax.core.Tracer):
+        return True
+    try:
+        bool(jnp.ravel(jax.lax.stop_gradient(x))[:1].sum() == 0)
+    except Exception:  # ConcretizationTypeError and its kin: a jit / vmap tracer
+        return False
+    return True
 
 
 @functools.partial(jax.jit, static_argnums=(4,))
