@@ -284,6 +284,26 @@ def _apply_cond(branches, index, operands, ctx: _Context):
 # ------------------------------------------------- flat programs (for jaxiso.arith._tape)
 
 
+def value_elements(f: Callable, n_args: int) -> int:
+    """How many numbers f computes per point: the summed sizes of every equation's outputs
+    in f's jaxpr on `n_args` float32 scalars (call-like bodies counted inside). A cost
+    measure that tells a network (thousands: matvecs) from a polynomial (tens)."""
+    avals = [jax.ShapeDtypeStruct((), jnp.float32)] * n_args
+    closed = jax.make_jaxpr(f)(*avals)
+
+    def walk(jaxpr):
+        total = 0
+        for eqn in jaxpr.eqns:
+            body = _call_body(eqn)
+            if body is not None:
+                total += walk(body.jaxpr if isinstance(body, jcore.ClosedJaxpr) else body)
+            else:
+                total += sum(int(np.prod(v.aval.shape)) for v in eqn.outvars)
+        return total
+
+    return walk(closed.jaxpr)
+
+
 def flat_program(f: Callable, n_args: int):
     """f traced on `n_args` float32 scalars and flattened to straight-line nodes.
 

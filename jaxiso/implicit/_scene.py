@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._core import (
+    LANES,
     Hits,
     Plan,
     SceneFields,
@@ -28,6 +29,7 @@ from .._core import (
     pytree_dataclass,
     static_field,
 )
+from ..arith._extend import value_elements
 from . import _bisect
 from ._auto import choose_arithmetic
 from ._field import (
@@ -62,11 +64,49 @@ ROUNDINGS = ("fast", "outward")
 _CPU_TILES = {"interval": 4, "affine": 8}
 
 
-def _plan(method, arithmetic, n_rays, backend) -> Plan:
+# Heavy functions (networks: hundreds of numbers computed per point, `value_elements`)
+# gain from persistent lanes from 2^12 rays on the CPU: Spelunking's networks at 128^2,
+# affine, eps 2^-10, run_s packets 8x8 -> 4096 lanes: fox 5.16 -> 1.11 s, hammer 4.82 ->
+# 1.19, birdcage_occ 6.85 -> 1.55, bunny 43.4 -> 12.5, with a shorter first call too; fox
+# at 64^2 1.48 -> 0.44 s. Light ones (the catalogue's polynomials: 6-39 numbers) compile
+# 2-4 s longer on lanes, which small images do not win back (Barth sextic 128^2: first
+# call 2.9 -> 7.0 s), so they keep packets below 2^16 rays. benchmarks/NOTES.md.
+HEAVY_ELEMENTS = 256
+HEAVY_LANES_FROM = 2**12
+
+
+def _plan(method, arithmetic, n_rays, backend, heavy=False) -> Plan:
     if backend != "cpu":
         return Plan(tile=8)
-    lanes = cpu_lanes(n_rays, backend) if method == "t-bisection" else None
+    lanes = None
+    if method == "t-bisection":
+        lanes = cpu_lanes(n_rays, backend)
+        if heavy and n_rays >= HEAVY_LANES_FROM:
+            lanes = LANES
     return Plan(tile=_CPU_TILES[arithmetic], lanes=lanes)
+
+
+_HEAVY: dict = {}  # (f, params shapes) -> bool
+
+
+def _is_heavy(f, g, params) -> bool:
+    """Whether f computes at least HEAVY_ELEMENTS numbers per point (a network)."""
+    shapes = tuple((jnp.shape(x), str(jnp.result_type(x)))
+                   for x in jax.tree_util.tree_leaves(params))
+    key = (f, shapes)
+    try:
+        if key in _HEAVY:
+            return _HEAVY[key]
+    except TypeError:
+        key = None
+    try:
+        size = value_elements(lambda x, y, z, w: g(x, y, z, w, params), 4)
+    except Exception:  # noqa: BLE001 - a function that cannot be traced on scalars
+        size = 0
+    heavy = size >= HEAVY_ELEMENTS
+    if key is not None:
+        _HEAVY[key] = heavy
+    return heavy
 
 
 class _ImplicitOptions(SceneFields):
@@ -222,7 +262,8 @@ class ImplicitSurface(_ImplicitOptions):
         if (self.method in ("t-bisection", "k-bisection") and self.arithmetic == "interval"
                 and self.rounding == "fast" and self._long_tape() is not None):
             return Plan(tile=16, tape=True)
-        return super().preferred_plan(n_rays, backend)
+        heavy = self.method == "t-bisection" and _is_heavy(self.f, self.field, self.params)
+        return _plan(self.method, self.arithmetic, n_rays, backend, heavy)
 
     def intersect_tape(self, rays, t_min, t_max, stats: dict | None = None) -> Hits:
         """First hits of rays [N] on the tape path (`Plan.tape`). The traversal runs on
@@ -244,6 +285,11 @@ class ImplicitSurface(_ImplicitOptions):
         return finish_hits(self.field, self, rays, hits.t, hits.hit, hits.steps,
                            self.normals)
 
+
+    def __call__(self, x, y, z):
+        """The field f at points x, y, z (arrays of any broadcastable shapes, evaluated
+        point by point through `on_points`; the isovalues are not subtracted)."""
+        return on_points(self.field)(x, y, z, self.w, self.params)
 
     def intersect_packet(self, rays, t_min, t_max, *, lanes: int | None = None) -> Hits:
         """First hits of one packet of rays [P] (the scene protocol, `jaxiso.Scene`)."""
