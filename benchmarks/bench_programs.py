@@ -205,7 +205,7 @@ def case_csg3d(n_prims=400, size=256, seed=1):
                 levels=levels, final=res.stats["final"], peak_rss_mb=_rss_mb())
 
 
-def case_scene3d(n_prims=400, size=256, seed=1, repeats=3):
+def case_scene3d(n_prims=400, size=256, seed=1, repeats=3, noprune=False):
     """The user's default call: ``ji.render(ji.ImplicitSurface(prog, lo, hi), cam)`` (the
     scene plans the tape path for a long program), and ``ji.intersect`` of the camera's
     rays for the hit mask and the per-level statistics."""
@@ -244,8 +244,13 @@ def case_scene3d(n_prims=400, size=256, seed=1, repeats=3):
         def z(x):
             return to_tiles(x, plan.tile).reshape(-1, plan.tile**2, 3)[:, order].reshape(-1, 3)
 
-        scene.intersect_tape(ji.Rays(z(rays.origin), z(rays.direction)), 0.0, np.inf,
-                             stats=stats)
+        zrays = ji.Rays(z(rays.origin), z(rays.direction))
+        scene.intersect_tape(zrays, 0.0, np.inf, stats=stats)
+        if noprune:  # what pruning buys: every region runs the full tape
+            _block(scene.intersect_tape(zrays, 0.0, np.inf, prune=False).t)  # compile
+            t0 = time.perf_counter()
+            _block(scene.intersect_tape(zrays, 0.0, np.inf, prune=False).t)
+            stats["noprune_intersect_s"] = time.perf_counter() - t0
     pick = np.random.default_rng(0).choice(size * size, min(1500, size * size), replace=False)
     ref_hit, ref_t = first_inside64(prog.ops, np.asarray(rays.origin).reshape(-1, 3)[pick],
                                     np.asarray(rays.direction).reshape(-1, 3)[pick], lo, hi)
@@ -259,7 +264,8 @@ def case_scene3d(n_prims=400, size=256, seed=1, repeats=3):
                 hit_agreement=float(np.mean(hit == ref_hit)),
                 hit_fraction=float(ref_hit.mean()),
                 t_error_median=float(np.median(np.abs(t[both] - ref_t[both]))),
-                levels=stats.get("levels"), peak_rss_mb=_rss_mb())
+                levels=stats.get("levels"),
+                noprune_intersect_s=stats.get("noprune_intersect_s"), peak_rss_mb=_rss_mb())
 
 
 CASES = dict(straight=case_straight, tape=case_tape, prospero=case_prospero,
@@ -337,6 +343,8 @@ def main():
     if "scene3d" in sections:
         args = [400, 256] if not a.quick else [60, 32]
         record("scene3d", run_case("scene3d", args, a.timeout, a.mem_mb))
+        args = [150, 128] if not a.quick else [60, 32]  # pruning off: a smaller model
+        record("scene3d", run_case("scene3d", args + [1, 1, True], a.timeout, a.mem_mb))
     chart(results, pathlib.Path(a.out).with_suffix(""))
 
 

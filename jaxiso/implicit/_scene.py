@@ -265,7 +265,8 @@ class ImplicitSurface(_ImplicitOptions):
         heavy = self.method == "t-bisection" and _is_heavy(self.f, self.field, self.params)
         return _plan(self.method, self.arithmetic, n_rays, backend, heavy)
 
-    def intersect_tape(self, rays, t_min, t_max, stats: dict | None = None) -> Hits:
+    def intersect_tape(self, rays, t_min, t_max, stats: dict | None = None,
+                       prune: bool = True) -> Hits:
         """First hits of rays [N] on the tape path (`Plan.tape`). The traversal runs on
         the host with concrete values: under eager `jax.grad` / `jvp` it runs on the
         primal values, and t gets its implicit-function-theorem derivative from the
@@ -277,7 +278,7 @@ class ImplicitSurface(_ImplicitOptions):
         if tape is None:
             raise ValueError("the tape path runs params that are pytrees of scalars only")
         primal = jax.lax.stop_gradient((self, rays, t_min, t_max))
-        hits = intersect_rays(primal[0], tape, *primal[1:], stats=stats)
+        hits = intersect_rays(primal[0], tape, *primal[1:], stats=stats, prune=prune)
         leaves = jax.tree_util.tree_leaves((self, rays, t_min, t_max))
         if not any(isinstance(x, jax.core.Tracer) for x in leaves):
             return hits

@@ -38,7 +38,7 @@ from ..arith._interval import Interval
 from ..arith._tape import Tape
 from ._bisect import depth_for, piece_width
 from ._field import ray_segments
-from .program import _chunked_eval, _survivors
+from .program import _chunked_eval, _histogram, _survivors
 
 __all__ = ["intersect_rays", "ROOT_GROUP", "ROOT_SLABS"]
 
@@ -227,11 +227,12 @@ def _schedule(n_groups: int, group: int):
         yield 1, 4
 
 
-def intersect_rays(scene, tape: Tape, rays: Rays, t_min, t_max, stats: dict | None = None
-                   ) -> Hits:
+def intersect_rays(scene, tape: Tape, rays: Rays, t_min, t_max, stats: dict | None = None,
+                   prune: bool = True) -> Hits:
     """First hits of rays [N] (concrete arrays) on the level sets of `scene` (an
     `ImplicitSurface` whose field is `tape`). `stats`, when given, receives per-level
-    region counts and tape lengths."""
+    region counts and tape lengths (mean, max, histogram). `prune=False` runs every
+    region on the full tape (to measure what pruning buys)."""
     n = rays.shape[0]
     group = ROOT_GROUP
     while group > 1 and group // 4 >= n:
@@ -262,7 +263,7 @@ def intersect_rays(scene, tape: Tape, rays: Rays, t_min, t_max, stats: dict | No
         G //= q
         size = _tape.bucket(max(n_amb, 1), 8, fine=True)
         tapes, choices, reg = _survivors(tapes, children, amb, chosen, size)
-        if tapes.length > PRUNE_ABOVE:
+        if prune and tapes.length > PRUNE_ABOVE:
             tapes = _prune_sorted(tapes, choices)
             tapes = _tape.resize(tapes, _tape.bucket(int(jnp.max(tapes.n))))
         tapes, reg = _longest_first(tapes, reg)
@@ -270,7 +271,8 @@ def intersect_rays(scene, tape: Tape, rays: Rays, t_min, t_max, stats: dict | No
             kept = np.asarray(tapes.n)[:n_amb]
             levels.append(dict(rays_per_region=G, regions=n_valid, kept=n_amb,
                                tape_mean=float(kept.mean()) if n_amb else 0.0,
-                               tape_max=int(kept.max()) if n_amb else 0))
+                               tape_max=int(kept.max()) if n_amb else 0,
+                               tape_hist=_histogram(kept)))
         else:
             levels.append(None)
         if n_amb == 0 or (G == 1 and n_unfinished == 0):
