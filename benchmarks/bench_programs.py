@@ -171,9 +171,20 @@ def case_dense(n):
                 agreement=float(np.mean((np.asarray(v) < 0) == ref)), peak_rss_mb=_rss_mb())
 
 
-def case_csg3d(n_prims=400, size=256, seed=1):
+def _sampled_reference(prog, rays, result, lo, hi, size):
+    """(hit, t, ref_hit, ref_t) on 1,500 seeded pixels: `result`'s and float64 dense
+    sampling's (first_inside64)."""
     import numpy as np
     from reference_program64 import first_inside64
+    pick = np.random.default_rng(0).choice(size * size, min(1500, size * size), replace=False)
+    ref_hit, ref_t = first_inside64(prog.ops, np.asarray(rays.origin).reshape(-1, 3)[pick],
+                                    np.asarray(rays.direction).reshape(-1, 3)[pick], lo, hi)
+    return (np.asarray(result.hit).reshape(-1)[pick], np.asarray(result.t).reshape(-1)[pick],
+            ref_hit, ref_t)
+
+
+def case_csg3d(n_prims=400, size=256, seed=1):
+    import numpy as np
 
     import jaxiso as ji
     from jaxiso.implicit import program
@@ -188,11 +199,7 @@ def case_csg3d(n_prims=400, size=256, seed=1):
     res = program.cast(prog, lo, hi, cam)
     run_s = time.perf_counter() - t0
     rays = cam.rays()
-    pick = np.random.default_rng(0).choice(size * size, min(1500, size * size), replace=False)
-    ref_hit, ref_t = first_inside64(prog.ops, np.asarray(rays.origin).reshape(-1, 3)[pick],
-                                    np.asarray(rays.direction).reshape(-1, 3)[pick], lo, hi)
-    hit = np.asarray(res.hit).reshape(-1)[pick]
-    t = np.asarray(res.t).reshape(-1)[pick]
+    hit, t, ref_hit, ref_t = _sampled_reference(prog, rays, res, lo, hi, size)
     both = hit & ref_hit
     levels = [{k: lv[k] for k in ("tile", "regions", "full", "ambiguous", "tape_bucket",
                                   "tape_mean", "tape_max", "tape_hist", "seconds")}
@@ -210,7 +217,6 @@ def case_scene3d(n_prims=400, size=256, seed=1, repeats=3, noprune=False):
     scene plans the tape path for a long program), and ``ji.intersect`` of the camera's
     rays for the hit mask and the per-level statistics."""
     import numpy as np
-    from reference_program64 import first_inside64
 
     import jaxiso as ji
     from jaxiso.implicit.generate import csg_program
@@ -238,24 +244,15 @@ def case_scene3d(n_prims=400, size=256, seed=1, repeats=3, noprune=False):
         runs.append(time.perf_counter() - t0)
     stats = {}
     if plan.tape:  # the same rays in the same order as intersect runs them (Z-order tiles)
-        from jaxiso.render import morton_order, to_tiles
-        order = morton_order(plan.tile)
-
-        def z(x):
-            return to_tiles(x, plan.tile).reshape(-1, plan.tile**2, 3)[:, order].reshape(-1, 3)
-
-        zrays = ji.Rays(z(rays.origin), z(rays.direction))
+        from jaxiso.render import to_zorder
+        zrays = ji.Rays(to_zorder(rays.origin, plan.tile), to_zorder(rays.direction, plan.tile))
         scene.intersect_tape(zrays, 0.0, np.inf, stats=stats)
         if noprune:  # what pruning buys: every region runs the full tape
             _block(scene.intersect_tape(zrays, 0.0, np.inf, prune=False).t)  # compile
             t0 = time.perf_counter()
             _block(scene.intersect_tape(zrays, 0.0, np.inf, prune=False).t)
             stats["noprune_intersect_s"] = time.perf_counter() - t0
-    pick = np.random.default_rng(0).choice(size * size, min(1500, size * size), replace=False)
-    ref_hit, ref_t = first_inside64(prog.ops, np.asarray(rays.origin).reshape(-1, 3)[pick],
-                                    np.asarray(rays.direction).reshape(-1, 3)[pick], lo, hi)
-    hit = np.asarray(hits.hit).reshape(-1)[pick]
-    t = np.asarray(hits.t).reshape(-1)[pick]
+    hit, t, ref_hit, ref_t = _sampled_reference(prog, rays, hits, lo, hi, size)
     both = hit & ref_hit
     return dict(primitives=n_prims, instructions=len(prog), size=size, plan=repr(plan),
                 arithmetic_report=scene.arithmetic_report, build_s=build_s,

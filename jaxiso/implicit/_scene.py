@@ -286,7 +286,6 @@ class ImplicitSurface(_ImplicitOptions):
         return finish_hits(self.field, self, rays, hits.t, hits.hit, hits.steps,
                            self.normals)
 
-
     def __call__(self, x, y, z):
         """The field f at points x, y, z (arrays of any broadcastable shapes, evaluated
         point by point through `on_points`; the isovalues are not subtracted)."""

@@ -21,7 +21,8 @@ import numpy as np
 
 from .._core import Hits, Plan, Rays, Scene, miss_like
 
-__all__ = ["Plan", "plan_for", "intersect", "to_tiles", "from_tiles", "morton_order"]
+__all__ = ["Plan", "plan_for", "intersect", "to_tiles", "from_tiles", "morton_order",
+           "to_zorder", "from_zorder"]
 
 
 def plan_for(scene, n_rays: int, backend: str | None = None) -> Plan:
@@ -80,20 +81,24 @@ def _tape_hits(scene, rays, t_min, t_max, tile):
         n = math.prod(shape)
         return scene.intersect_tape(rays.reshape((n,)), t_min.reshape(n),
                                     t_max.reshape(n)).reshape(shape)
-    order = morton_order(tile)
-    undo = np.argsort(order)
+    hits = scene.intersect_tape(
+        Rays(to_zorder(rays.origin, tile), to_zorder(rays.direction, tile)),
+        to_zorder(t_min, tile), to_zorder(t_max, tile))
+    return jax.tree_util.tree_map(lambda x: from_zorder(x, tile, *shape), hits)
 
-    def z(x):
-        x = to_tiles(x, tile)
-        return x.reshape((-1, tile * tile) + x.shape[1:])[:, order].reshape(x.shape)
 
-    def unz(x):
-        x = x.reshape((-1, tile * tile) + x.shape[1:])[:, undo].reshape(x.shape)
-        return from_tiles(x, tile, *shape)
+def to_zorder(x, tile: int):
+    """`to_tiles`, then Z-order within each tile (tile a power of 2): every run of 4^k
+    consecutive entries is a square of pixels."""
+    x = to_tiles(x, tile)
+    return x.reshape((-1, tile * tile) + x.shape[1:])[:, morton_order(tile)].reshape(x.shape)
 
-    hits = scene.intersect_tape(Rays(z(rays.origin), z(rays.direction)), z(t_min),
-                                z(t_max))
-    return jax.tree_util.tree_map(unz, hits)
+
+def from_zorder(x, tile: int, height: int, width: int):
+    """Inverse of `to_zorder`."""
+    undo = np.argsort(morton_order(tile))
+    x = x.reshape((-1, tile * tile) + x.shape[1:])[:, undo].reshape(x.shape)
+    return from_tiles(x, tile, height, width)
 
 
 def runnable_plan(plan: Plan, scene, inputs, n_rays: int) -> Plan:

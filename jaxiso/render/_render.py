@@ -24,11 +24,12 @@ from ._image import Image
 from ._plan import (
     _check_scene,
     from_tiles,
+    from_zorder,
     intersect_traced,
-    morton_order,
     plan_for,
     runnable_plan,
     to_tiles,
+    to_zorder,
 )
 
 __all__ = ["Light", "Shading", "render", "DEFAULT_COLORS"]
@@ -200,16 +201,9 @@ def _render_tape(scene, camera, shading, light, plan):
     square of pixels."""
     tile = plan.tile
     rays = camera.rays()
-    order = morton_order(tile)
-    undo = np.argsort(order)
-
-    def zorder(x, perm):
-        return x.reshape(-1, tile * tile, x.shape[-1])[:, perm].reshape(-1, x.shape[-1])
-
-    o = zorder(to_tiles(rays.origin, tile), order)
-    d = zorder(to_tiles(rays.direction, tile), order)
+    o, d = to_zorder(rays.origin, tile), to_zorder(rays.direction, tile)
     colors = shade_rays(scene, Rays(o, d), shading, light, plan)
-    return from_tiles(zorder(colors, undo), tile, camera.height, camera.width)
+    return from_zorder(colors, tile, camera.height, camera.width)
 
 
 def _sharded(fn, mesh, o, d, packet):
