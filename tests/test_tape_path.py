@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from reference_program64 import first_inside64
+from reference_program64 import first_inside64, vm64
 
 import jaxiso as ji
 from jaxiso.implicit import surfaces
@@ -89,6 +89,7 @@ def test_long_program_chooses_the_tape_plan_and_renders():
     lo, hi = (-1.6,) * 3, (1.6,) * 3
     S = ji.ImplicitSurface(prog, lo, hi)
     assert S.arithmetic == "interval" and "tape path" in S.arithmetic_report
+    assert "median enclosure width" in S.arithmetic_report  # measured on the tape
     assert ji.plan_for(S, 1024).tape
     cam = ji.Camera.look_at((3.0, 2.5, 2.0), (0, 0, 0), width=24, height=24)
     hits = ji.intersect(S, cam.rays())
@@ -194,3 +195,45 @@ def test_ift_derivatives_through_the_tape_path_match_float64():
     gn = jax.grad(lambda p: jnp.sum(ji.intersect(S.replace(params=p), rays,
                                                  plan=TAPE).normal[..., 0]))(params)
     assert np.isfinite(float(gn["r"]))
+
+
+def test_affine_tape_evaluation_is_the_affine_extension_and_encloses_float64():
+    """`_tape.evaluate` on AF1 forms computes what `extend(f, "affine")` computes (the same
+    rules), encloses f on the piece (float64 samples), and the min/max choices it records
+    prune the tape to a program equal to f on the piece."""
+    from jaxiso.arith import _affine as aa
+    from jaxiso.arith import _tape
+    from jaxiso.arith._affine_type import Affine
+
+    prog = csg_program(12, seed=3)
+    tape = _tape.from_function(prog, 3)
+    rng = np.random.default_rng(0)
+    c = rng.uniform(-1, 1, (4, 8, 3)).astype(np.float32)
+    D = (rng.normal(size=(4, 8, 3)) * 0.05).astype(np.float32)
+    coords = [Affine(jnp.asarray(c[..., i]), jnp.asarray(D[..., i:i + 1]), jnp.zeros((4, 8)))
+              for i in range(3)]
+    tapes = _tape.take_regions(tape, jnp.zeros(4, jnp.int32))
+    value, chosen = jax.jit(lambda t, x: _tape.evaluate(t, x, True))(tapes, coords)
+    ref = ji.extend(prog, "affine", n_symbols=1)(*coords)
+    np.testing.assert_allclose(np.asarray(value.center), np.asarray(ref.center), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(value.dev), np.asarray(ref.dev), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(value.err), np.asarray(ref.err), atol=1e-6)
+    s = np.linspace(-1.0, 1.0, 21)
+    pts = c[..., None, :].astype(np.float64) + s[:, None] * D[..., None, :]
+    f64 = vm64(prog.ops, pts[..., 0], pts[..., 1], pts[..., 2])
+    box = aa.to_interval(value)
+    assert np.all(f64 >= np.asarray(box.lo)[..., None] - 1e-6)
+    assert np.all(f64 <= np.asarray(box.hi)[..., None] + 1e-6)
+    # one region per piece: prune each with its own choices, evaluate at the samples
+    per_piece = _tape.take_regions(tape, jnp.zeros(32, jnp.int32))
+    pruned = _tape.prune(per_piece, chosen.reshape(chosen.shape[0], 32))
+    assert int(jnp.max(pruned.n)) < int(tape.n)  # some choices were proved
+    xs = [jnp.asarray(pts[..., i].reshape(32, -1), jnp.float32) for i in range(3)]
+    np.testing.assert_allclose(np.asarray(_tape.evaluate(pruned, xs)),
+                               f64.reshape(32, -1), atol=1e-5)
+
+
+def test_affine_tape_path_same_hits_as_straight_affine():
+    S = surfaces.scene("barth_sextic", arithmetic="affine")
+    rays = surfaces.camera("barth_sextic", 32).rays()
+    _compare(ji.intersect(S, rays, plan=TAPE), ji.intersect(S, rays, plan=STRAIGHT), S.eps)

@@ -7,13 +7,14 @@ float32 arrays), one compiled `evaluate` runs any tape of the same padded length
 program, or a program pruned for a region of space, costs no new XLA code. Tapes are
 padded to bucketed lengths (`bucket`) so that only a few shapes ever compile.
 
-`evaluate` runs a batch of tapes ``[R, L]`` (one per region) on ``[R, P]`` points or
-intervals with a `lax.fori_loop` over instructions and a register file ``[L, R, P]``; each
-step computes the opcodes the tape set can use (its static `opset`) and selects per region.
-Interval semantics are the rules of `ia` (same functions as `extend`). In interval mode it
-can also record, per min/max instruction, which operand the intervals prove is chosen;
-`prune` then rewrites each tape for its region: decided min/max become their operand and
-instructions no longer reachable from the output are dropped (the tape is compacted).
+`evaluate` runs a batch of tapes ``[R, L]`` (one per region) on ``[R, P]`` points,
+intervals or AF1 affine forms with a `lax.fori_loop` over instructions and a register
+file ``[L, R, P]``; each step computes the opcodes the tape set can use (its static
+`opset`) and selects per region. Interval and affine semantics are the rules of `ia` and
+`aa` (the same functions as `extend`). In interval and affine mode it can also record,
+per min/max instruction, which operand the enclosures prove is chosen; `prune` then
+rewrites each tape for its region: decided min/max become their operand and instructions
+no longer reachable from the output are dropped (the tape is compacted).
 """
 
 from __future__ import annotations
@@ -26,7 +27,9 @@ import numpy as np
 from jax import lax
 
 from .._core import pytree_dataclass, static_field
+from . import _affine as aa
 from . import _interval as ia
+from ._affine_type import Affine, _range
 from ._interval import Interval
 
 __all__ = ["OPS", "Tape", "assemble", "from_function", "evaluate", "prune", "bucket",
@@ -258,73 +261,92 @@ def _ipow_interval(x: Interval, n) -> Interval:
     return Interval(lo, hi)
 
 
-def _interval_cases(opset, va: Interval, vb: Interval, imm, var: Interval):
+def _ipow_affine(x: Affine, n) -> Affine:
+    """x ** n with a traced exponent: the interval power on the error term (the
+    correlation with x is not kept; `aa.ipow` needs a static exponent)."""
+    return aa.from_interval(_ipow_interval(aa.to_interval(x), n), None, x.n)
+
+
+def _enclosure_cases(opset, va, vb, imm, var):
+    """The rules of the opcodes in `opset` on intervals (`ia`) or affine forms (`aa`)."""
     n = imm.astype(jnp.int32)
-    c = jnp.broadcast_to(imm, va.lo.shape)
+    if isinstance(va, Affine):
+        m, ipow = aa, _ipow_affine
+        const = aa.as_affine(jnp.broadcast_to(imm, va.center.shape), va.n)
+    else:
+        m, ipow = ia, _ipow_interval
+        c = jnp.broadcast_to(imm, va.lo.shape)
+        const = Interval(c, c)
     table = {
-        CONST: lambda: Interval(c, c), VAR: lambda: var,
-        NEG: lambda: ia.neg(va), ABS: lambda: ia.abs(va), SQUARE: lambda: ia.square(va),
-        SQRT: lambda: ia.sqrt(va), EXP: lambda: ia.exp(va), LOG: lambda: ia.log(va),
-        SIN: lambda: ia.sin(va), COS: lambda: ia.cos(va),
-        IPOW: lambda: _ipow_interval(va, n), ADD: lambda: ia.add(va, vb),
-        SUB: lambda: ia.sub(va, vb), MUL: lambda: ia.mul(va, vb), DIV: lambda: ia.div(va, vb),
-        MIN: lambda: ia.minimum(va, vb), MAX: lambda: ia.maximum(va, vb),
+        CONST: lambda: const, VAR: lambda: var,
+        NEG: lambda: m.neg(va), ABS: lambda: m.abs(va), SQUARE: lambda: m.square(va),
+        SQRT: lambda: m.sqrt(va), EXP: lambda: m.exp(va), LOG: lambda: m.log(va),
+        SIN: lambda: m.sin(va), COS: lambda: m.cos(va),
+        IPOW: lambda: ipow(va, n), ADD: lambda: m.add(va, vb),
+        SUB: lambda: m.sub(va, vb), MUL: lambda: m.mul(va, vb), DIV: lambda: m.div(va, vb),
+        MIN: lambda: m.minimum(va, vb), MAX: lambda: m.maximum(va, vb),
     }
     return [table[c]() for c in opset]
 
 
 def _select(opset, o, cases):
-    """cases[position of o in opset] per region (o: [R], cases: [R, P] each)."""
+    """cases[position of o in opset] per region (o: [R], cases: [R, P, ...] each)."""
     if len(cases) == 1:
         return cases[0]
     lookup = np.zeros(len(OPS), np.int32)
     lookup[list(opset)] = np.arange(len(opset))
-    which = jnp.broadcast_to(jnp.asarray(lookup)[o][:, None], cases[0].shape)
-    return lax.select_n(which, *cases)
+    which = jnp.asarray(lookup)[o].reshape((-1,) + (1,) * (cases[0].ndim - 1))
+    return lax.select_n(jnp.broadcast_to(which, cases[0].shape), *cases)
 
 
-def _choice(o, va: Interval, vb: Interval):
-    """1 where the intervals prove min/max takes its first operand, 2 the second, else 0."""
+def _choice(o, va, vb):
+    """1 where the enclosures prove min/max takes its first operand, 2 the second, else 0
+    (intervals compare bounds; affine forms bound the difference, which keeps their
+    correlation)."""
     o = o[:, None]
-    first = jnp.where(o == MIN, va.hi <= vb.lo, va.lo >= vb.hi)
-    second = jnp.where(o == MIN, vb.hi <= va.lo, vb.lo >= va.hi)
+    if isinstance(va, Affine):
+        d = _range(aa.sub(va, vb))  # a - b, padded as aa.minimum / aa.maximum do
+        first = jnp.where(o == MIN, d.hi <= 0, d.lo >= 0)
+        second = jnp.where(o == MIN, d.lo >= 0, d.hi <= 0)
+    else:
+        first = jnp.where(o == MIN, va.hi <= vb.lo, va.lo >= vb.hi)
+        second = jnp.where(o == MIN, vb.hi <= va.lo, vb.lo >= va.hi)
     pick = jnp.where(first, 1, jnp.where(second, 2, 0)).astype(jnp.int8)
     return jnp.where((o == MIN) | (o == MAX), pick, jnp.int8(0))
 
 
 def evaluate(tape: Tape, coords, record: bool = False):
-    """Run a batch of tapes on points or intervals.
+    """Run a batch of tapes on points, intervals or affine forms.
 
     Args:
       tape: a batch of tapes ([L, R] arrays, [R] n).
-      coords: `tape.n_vars` coordinates, each a float32 array or an `Interval`,
-        broadcastable to [R, P] (all points, or all intervals).
-      record: interval mode only: also return the min/max choices, int8 [L, R, P]
-        (1: the first operand is proved to be chosen on that box, 2: the second, 0: both
-        possible or not a min/max).
+      coords: `tape.n_vars` coordinates, each a float32 array, an `Interval` or an AF1
+        `Affine` form (all with the same noise symbols), broadcastable to [R, P] (all of
+        one kind).
+      record: interval / affine mode only: also return the min/max choices, int8
+        [L, R, P] (1: the first operand is proved to be chosen on that box, 2: the
+        second, 0: both possible or not a min/max).
 
-    Returns the program's value [R, P] (an array, or an Interval), and the choices if
-    `record`. Pure; jit it with the tape as an argument (its `opset`/`n_vars` static).
+    Returns the program's value [R, P] (an array, an Interval or an Affine), and the
+    choices if `record`. Pure; jit it with the tape as an argument (its `opset`/`n_vars`
+    static). The register file holds every part of a value side by side (points 1,
+    intervals 2, affine forms with n symbols n + 2), so affine costs about (n + 2) / 2
+    interval evaluations.
     """
     if len(coords) != tape.n_vars:
         raise ValueError(f"the tape reads {tape.n_vars} coordinates, got {len(coords)}")
-    intervals = isinstance(coords[0], Interval)
+    kind = type(coords[0])
+    if any(type(c) is not kind for c in coords) and kind in (Interval, Affine):
+        raise TypeError("the coordinates must all be points, all Intervals or all Affine")
+    if record and kind not in (Interval, Affine):
+        raise ValueError("record=True needs interval or affine coordinates")
     L, R = tape.op.shape
-    if intervals:
-        shape = jnp.broadcast_shapes((R, 1), *[jnp.shape(c.lo) for c in coords],
-                                     *[jnp.shape(c.hi) for c in coords])
-        lo = jnp.stack([jnp.broadcast_to(c.lo, shape) for c in coords])
-        hi = jnp.stack([jnp.broadcast_to(c.hi, shape) for c in coords])
-        cstack = (lo.astype(jnp.float32), hi.astype(jnp.float32))
-    else:
-        if record:
-            raise ValueError("record=True needs interval coordinates")
-        shape = jnp.broadcast_shapes((R, 1), *[jnp.shape(c) for c in coords])
-        cstack = (jnp.stack([jnp.broadcast_to(c, shape) for c in coords]).astype(
-            jnp.float32),)
+    cstack = _coordinate_parts(coords, kind, R)
+    shape = cstack[0].shape[1:]
+    n_sym = coords[0].n if kind is Affine else 0
     rows = jnp.arange(R)
     # one register file (XLA updates a single loop-carried buffer in place; with two it
-    # copied them every step): lo and hi side by side, and the choices as a third part
+    # copied them every step): the value's parts side by side, the choices as the last
     C = len(cstack) + int(record)
     P = shape[-1]
     regs = jnp.zeros((L, R, C * P), jnp.float32)
@@ -332,31 +354,63 @@ def evaluate(tape: Tape, coords, record: bool = False):
     def parts(v):
         return [v[:, c * P:(c + 1) * P] for c in range(C)]
 
+    def value(p):
+        if kind is Interval:
+            return Interval(p[0], p[1])
+        if kind is Affine:
+            return Affine(p[0], jnp.stack(p[1:1 + n_sym], axis=-1), p[1 + n_sym])
+        return p[0]
+
+    def flat(o, cases):
+        """The parts ([R, P] each) of the case that each region's opcode o selects."""
+        if kind is Interval:
+            return [_select(tape.opset, o, [c.lo for c in cases]),
+                    _select(tape.opset, o, [c.hi for c in cases])]
+        if kind is Affine:
+            dev = _select(tape.opset, o, [c.dev for c in cases])
+            return ([_select(tape.opset, o, [c.center for c in cases])]
+                    + [dev[..., k] for k in range(n_sym)]
+                    + [_select(tape.opset, o, [c.err for c in cases])])
+        return [_select(tape.opset, o, cases)]
+
+    rule = _point_cases if kind not in (Interval, Affine) else _enclosure_cases
+
     def body(i, regs):
         o, a, b = tape.op[i], tape.a[i], tape.b[i]
         imm = tape.imm[i][:, None]
         va = parts(regs[jnp.clip(a, 0, L - 1), rows])
         vb = parts(regs[b, rows])
-        var = [c[jnp.clip(a, 0, tape.n_vars - 1), rows] for c in cstack]
-        if intervals:
-            A, B, V = Interval(va[0], va[1]), Interval(vb[0], vb[1]), Interval(*var)
-            cases = _interval_cases(tape.opset, A, B, imm, V)
-            out = [_select(tape.opset, o, [c.lo for c in cases]),
-                   _select(tape.opset, o, [c.hi for c in cases])]
-            if record:
-                out.append(_choice(o, A, B).astype(jnp.float32))
-            out = jnp.concatenate(out, axis=-1)
-        else:
-            out = _select(tape.opset, o, _point_cases(tape.opset, va[0], vb[0], imm, var[0]))
-        return lax.dynamic_update_index_in_dim(regs, out, i, 0)
+        var = value([c[jnp.clip(a, 0, tape.n_vars - 1), rows] for c in cstack])
+        A, B = value(va), value(vb)
+        out = flat(o, rule(tape.opset, A, B, imm, var))
+        if record:
+            out.append(_choice(o, A, B).astype(jnp.float32))
+        return lax.dynamic_update_index_in_dim(regs, jnp.concatenate(out, axis=-1), i, 0)
 
     regs = lax.fori_loop(0, jnp.max(tape.n), body, regs)
     last = jnp.clip(tape.n - 1, 0, L - 1)
-    res = parts(regs[last, rows])[:2 if intervals else 1]
+    result = value(parts(regs[last, rows]))
     if record:
-        chosen = regs[:, :, 2 * P:].astype(jnp.int8)
-    value = Interval(*res) if intervals else res[0]
-    return (value, chosen) if record else value
+        return result, regs[:, :, (C - 1) * P:].astype(jnp.int8)
+    return result
+
+
+def _coordinate_parts(coords, kind, R):
+    """The coordinates as a list of parts, each [n_vars, R, P] float32: (x,), (lo, hi) or
+    (center, dev_0, ..., dev_{n-1}, err)."""
+    if kind is Interval:
+        pieces = [(c.lo, c.hi) for c in coords]
+    elif kind is Affine:
+        n = coords[0].n
+        for c in coords:
+            if c.n != n:
+                raise ValueError(f"affine coordinates with {c.n} and {n} noise symbols")
+        pieces = [(c.center, *[c.dev[..., k] for k in range(n)], c.err) for c in coords]
+    else:
+        pieces = [(c,) for c in coords]
+    shape = jnp.broadcast_shapes((R, 1), *[jnp.shape(x) for p in pieces for x in p])
+    return [jnp.stack([jnp.broadcast_to(p[k], shape) for p in pieces]).astype(jnp.float32)
+            for k in range(len(pieces[0]))]
 
 
 # ---------------------------------------------------------------------------- pruning

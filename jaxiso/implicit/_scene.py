@@ -224,15 +224,11 @@ class ImplicitSurface(_ImplicitOptions):
         super()._validate()
         # fail early on a bad signature
         as_field(self.f, self.has_params)
-        if self.arithmetic == "auto" and self._long_tape() is not None:
-            # measuring would compile the straight extension of a long program (minutes)
-            object.__setattr__(self, "arithmetic", "interval")
-            object.__setattr__(self, "arithmetic_report", (
-                f"auto: interval (a program of {int(self._long_tape().n)} instructions: "
-                "it runs on the tape path, in interval arithmetic; nothing measured)"))
         if self.arithmetic == "auto":
+            # a long program is measured on its tape: the straight extension would take
+            # minutes to compile
             pick, report = choose_arithmetic(self.f, self.field, self.lo, self.hi, self.w,
-                                             self.params, self.rounding)
+                                             self.params, self.rounding, self._long_tape())
             object.__setattr__(self, "arithmetic", pick)
             object.__setattr__(self, "arithmetic_report", report)
 
@@ -256,11 +252,11 @@ class ImplicitSurface(_ImplicitOptions):
         return None if tree is False else long_program_tape(self.f, tree)
 
     def preferred_plan(self, n_rays: int, backend: str) -> Plan:
-        """Long programs (`program.TAPE_CROSSOVER` instructions or more) in interval
-        t-/K-bisection with the seed's rounding run on the tape path; others as measured
-        per arithmetic and backend."""
-        if (self.method in ("t-bisection", "k-bisection") and self.arithmetic == "interval"
-                and self.rounding == "fast" and self._long_tape() is not None):
+        """Long programs (`program.TAPE_CROSSOVER` instructions or more) in t-/K-bisection
+        with the seed's rounding run on the tape path (interval or affine); others as
+        measured per arithmetic and backend."""
+        if (self.method in ("t-bisection", "k-bisection") and self.rounding == "fast"
+                and self._long_tape() is not None):
             return Plan(tile=16, tape=True)
         heavy = self.method == "t-bisection" and _is_heavy(self.f, self.field, self.params)
         return _plan(self.method, self.arithmetic, n_rays, backend, heavy)

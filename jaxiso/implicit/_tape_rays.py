@@ -8,12 +8,15 @@ memory grow with the program). Same answer as t-bisection, found breadth-first:
   each ray's own segment in the box (p + s D, s in [0, 1]). Its box is the hull of the
   group's slab end points (each ray's slab is a line piece, so the hull of the ends holds
   it), padded outward.
-* Level by level every surviving region splits into 4 ray groups x 2 slabs (the root:
-  1024 rays x 4 slabs), down to single rays, then quarters its slab until a piece is
-  at most eps long: the pieces t-bisection ends on (dyadic fractions of the segment, Eq.
-  6.19). Each child is classified with its parent's tape in interval arithmetic; a child
-  whose enclosure holds no isovalue is dropped, the others are compacted (bucketed sizes)
-  and get their parent's tape pruned by their own min/max choices.
+* Level by level every surviving region splits into 4 ray groups x 2 slabs (the root,
+  one region over all rays, into `ROOT_GROUP`-ray groups x `ROOT_SLABS` slabs), down to
+  single rays, then quarters its slab until a piece is at most eps long: the pieces
+  t-bisection ends on (dyadic fractions of the segment, Eq. 6.19). Each child is
+  classified with its parent's tape in the scene's arithmetic (interval, or affine: one
+  noise symbol per axis of a group's box, a single ray's piece exactly on one symbol, its
+  parameter); a child whose enclosure holds no isovalue is dropped, the others are
+  compacted (bucketed sizes) and get their parent's tape pruned by their own min/max
+  choices.
 * The final pieces are verified like the straight path's (`ImplicitSurface.verify`:
   a sign change of f - iso between the piece's ends, or the first-order distance at its
   midpoint), and each ray keeps its nearest; value and gradient (normal) come from the
@@ -33,11 +36,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._core import Hits, Rays, unit_or_facing
+from ..arith import _affine as aa
 from ..arith import _tape
+from ..arith._affine_type import Affine
 from ..arith._interval import Interval
 from ..arith._tape import Tape
 from ._bisect import depth_for, piece_width
-from ._field import ray_segments
+from ._field import ray_boxes, ray_segments
 from .program import _chunked_eval, _histogram, _survivors
 
 __all__ = ["intersect_rays", "ROOT_GROUP", "ROOT_SLABS"]
@@ -71,10 +76,12 @@ def _any_level(r: Interval, iso):
     return jnp.any((r.lo[..., None] <= iso) & (iso <= r.hi[..., None]), axis=-1)
 
 
-@functools.partial(jax.jit, static_argnames=("G", "q", "h"))
-def _level(tapes, reg, seg, lo, hi, rest, iso, G, q, h):
+@functools.partial(jax.jit, static_argnames=("G", "q", "h", "arithmetic"))
+def _level(tapes, reg, seg, lo, hi, rest, iso, G, q, h, arithmetic):
     """Split every region (R: groups of G rays) into q ray groups x h slabs, classify the
-    children with the parents' tapes; return children, which hold a level, their choices."""
+    children with the parents' tapes in `arithmetic` ("interval": their boxes; "affine":
+    one noise symbol per axis of a group's box, a single ray's piece on one symbol, its
+    parameter); return children, which hold a level, their choices."""
     _, _, inside, p, D, fine = seg
     Gc = G // q
     sub, k = (a.reshape(-1) for a in jnp.meshgrid(jnp.arange(q), jnp.arange(h),
@@ -106,9 +113,23 @@ def _level(tapes, reg, seg, lo, hi, rest, iso, G, q, h):
     blo = jnp.maximum(blo - pad, lo)
     bhi = jnp.minimum(bhi + pad, hi)
     valid = valid & jnp.any(ok, axis=-1) & jnp.all(blo <= bhi, axis=-1)
-    boxes = [Interval(blo[..., c], bhi[..., c]) for c in range(3)]
-    f, chosen = _chunked_eval(tapes, boxes + [Interval(v, v) for v in rest], True, _BUDGET,
-                              _CHUNKS)
+    if arithmetic == "interval":
+        boxes = [Interval(blo[..., c], bhi[..., c]) for c in range(3)]
+        boxes += [Interval(v, v) for v in rest]
+    elif Gc == 1:
+        # one ray's piece is exactly affine in its one parameter: one noise symbol
+        boxes = ray_boxes(pr[..., 0, :], Dr[..., 0, :], s0, s1, "affine")
+        boxes += [aa.as_affine(jnp.broadcast_to(v, s0.shape), 1) for v in rest]
+    else:
+        # a group's box: one noise symbol per axis
+        mid, rad = 0.5 * (blo + bhi), 0.5 * (bhi - blo)
+        err = _PAD * (jnp.abs(mid) + rad)  # rounding of mid and rad
+        boxes = [Affine(mid[..., c], rad[..., c, None] * jnp.eye(3)[c], err[..., c])
+                 for c in range(3)]
+        boxes += [aa.as_affine(jnp.broadcast_to(v, s0.shape), 3) for v in rest]
+    f, chosen = _chunked_eval(tapes, boxes, True, _BUDGET, _CHUNKS)
+    if arithmetic == "affine":
+        f = aa.to_interval(f)
     amb = valid & _any_level(f, iso)
     if Gc == 1:
         # a piece whose ends straddle a level holds a root: the ray's pieces behind it
@@ -258,7 +279,7 @@ def intersect_rays(scene, tape: Tape, rays: Rays, t_min, t_max, stats: dict | No
     levels = []
     for q, h in _schedule(n_pad // group, group):
         children, amb, chosen, counts = _level(tapes, reg, seg, scene.lo, scene.hi, rest,
-                                               iso, G, q, h)
+                                               iso, G, q, h, scene.arithmetic)
         n_valid, n_amb, n_unfinished = (int(c) for c in counts)
         G //= q
         size = _tape.bucket(max(n_amb, 1), 8, fine=True)

@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..arith import _tape
+from ..arith._affine_type import Affine
 from ..arith._interval import Interval
 from ..arith._tape import Tape
 from ._field import as_field, clip_to_box
@@ -294,13 +295,19 @@ def _region_boxes(frame, lo, hi, ty, tx, T, s0, s1, H, W, ortho):
     return [Interval(blo[..., k], bhi[..., k]) for k in range(3)], ok
 
 
+def _lead(c):
+    """A coordinate's value array (points), lower bounds or centres."""
+    return c.lo if isinstance(c, Interval) else c.center if isinstance(c, Affine) else c
+
+
 def _chunked_eval(tapes, coords, record, budget, min_chunks=1):
     """`_tape.evaluate` over region chunks so that the register file stays within
     `budget` elements (R is a power of two), in at least `min_chunks` chunks (each runs
     as many instructions as its longest tape: regions sorted by tape length gain)."""
     L, R = tapes.op.shape
-    P = jnp.broadcast_shapes(*[jnp.shape(c.lo if isinstance(c, Interval) else c)
-                               for c in coords])[-1]
+    P = jnp.broadcast_shapes(*[jnp.shape(_lead(c)) for c in coords])[-1]
+    # an affine register holds n + 2 parts, an interval one 2: affine chunks are smaller
+    P *= max(1, (coords[0].n + 2) // 2) if isinstance(coords[0], Affine) else 1
     chunks = 1
     while R % (2 * chunks) == 0 and (L * (R // chunks) * P > budget or chunks < min_chunks):
         chunks *= 2
