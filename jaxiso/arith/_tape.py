@@ -330,8 +330,9 @@ def evaluate(tape: Tape, coords, record: bool = False):
     Returns the program's value [R, P] (an array, an Interval or an Affine), and the
     choices if `record`. Pure; jit it with the tape as an argument (its `opset`/`n_vars`
     static). The register file holds every part of a value side by side (points 1,
-    intervals 2, affine forms with n symbols n + 2), so affine costs about (n + 2) / 2
-    interval evaluations.
+    intervals 2, affine forms with n symbols n + 2). Every step computes the rule of each
+    opcode in `opset` and selects; with affine rules that is 8-9x the interval cost on
+    CPU (benchmarks/NOTES.md, Session 8), not (n + 2) / 2.
     """
     if len(coords) != tape.n_vars:
         raise ValueError(f"the tape reads {tape.n_vars} coordinates, got {len(coords)}")
