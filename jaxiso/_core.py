@@ -99,6 +99,18 @@ def concrete(x):
     return a if a.dtype != object else None
 
 
+def on_host(x) -> bool:
+    """Whether x has a concrete value (arrays; tracers of eager grad/jvp do, of jit and
+    vmap do not)."""
+    if not isinstance(x, jax.core.Tracer):
+        return True
+    try:
+        bool(jnp.ravel(jax.lax.stop_gradient(x))[:1].sum() == 0)
+    except Exception:  # ConcretizationTypeError and its kin: a jit / vmap tracer
+        return False
+    return True
+
+
 def check_finite(name: str, x) -> None:
     """ValueError naming `name` if a concrete x holds NaN or inf."""
     a = concrete(x)
@@ -206,7 +218,8 @@ class Plan:
         whole batch as one queue (faster per frame for large images, slower to compile).
       tape: run the scene's program as an instruction tape, breadth-first over ray
         groups with per-region pruning (`ImplicitSurface` of a long program: its
-        `preferred_plan` says when). Host-driven: needs concrete inputs (not under jit).
+        `preferred_plan` says when). Host-driven: under jit / vmap it runs in a
+        `jax.pure_callback` (tested on CPU).
     """
 
     tile: int = 8

@@ -8,6 +8,7 @@ rays through the implicit function theorem (`attach_t`), never through the loops
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from collections.abc import Callable
 
@@ -26,6 +27,7 @@ from .._core import (
     concrete,
     cpu_lanes,
     isovalues_array,
+    on_host,
     pytree_dataclass,
     static_field,
 )
@@ -264,23 +266,27 @@ class ImplicitSurface(_ImplicitOptions):
     def intersect_tape(self, rays, t_min, t_max, stats: dict | None = None,
                        prune: bool = True) -> Hits:
         """First hits of rays [N] on the tape path (`Plan.tape`). The traversal runs on
-        the host with concrete values: under eager `jax.grad` / `jvp` it runs on the
-        primal values, and t gets its implicit-function-theorem derivative from the
-        straight point function (normals too); under jit / vmap it cannot run."""
+        the host with concrete values: eagerly (also under eager `jax.grad` / `jvp`, on
+        the primal values), or under jit / vmap in a `jax.pure_callback`. Differentiated,
+        t gets its implicit-function-theorem derivative from the straight point function
+        at the hits (normals too), which compiles only when derivatives are taken."""
         tree = self._params_tree()
         tape = self._long_tape()
         if tape is None and tree is not False:
-            tape = tape_of(self.f, tree)
+            with jax.ensure_compile_time_eval():  # concrete under a jit trace too
+                tape = tape_of(self.f, tree)
         if tape is None:
             raise ValueError("the tape path runs params that are pytrees of scalars only")
         primal = jax.lax.stop_gradient((self, rays, t_min, t_max))
-        hits = intersect_rays(primal[0], tape, *primal[1:], stats=stats, prune=prune)
         leaves = jax.tree_util.tree_leaves((self, rays, t_min, t_max))
+        if all(on_host(x) for x in leaves):
+            hits = intersect_rays(primal[0], tape, *primal[1:], stats=stats, prune=prune)
+        else:
+            hits = _tape_callback(tape, primal, stats, prune)
         if not any(isinstance(x, jax.core.Tracer) for x in leaves):
             return hits
-        # differentiated: t and normals from the straight point function at the hits
-        return finish_hits(self.field, self, rays, hits.t, hits.hit, hits.steps,
-                           self.normals)
+        t, normal = _differentiable_hits(self.normals, (self, rays), hits)
+        return dataclasses.replace(hits, t=t, normal=normal)
 
     def __call__(self, x, y, z):
         """The field f at points x, y, z (arrays of any broadcastable shapes, evaluated
@@ -375,6 +381,49 @@ def _k_bisection(test, p, D, d_max, inside, length, max_steps, verify):
                              d_max, coherent, max_steps, check)
     res_t = _t_bisection(test, p, D, d_max, inside & ~coherent, max_steps, verify)
     return jax.tree_util.tree_map(lambda a, b: jnp.where(coherent, a, b), res_k, res_t)
+
+
+def _tape_callback(tape, primal, stats, prune) -> Hits:
+    """`intersect_rays` on values that exist only at run time (under jit / vmap): the
+    host driver runs in a `jax.pure_callback` on the concrete values (vmap: once per
+    batch element)."""
+    flat, tree = jax.tree_util.tree_flatten(primal)
+    n = primal[1].shape[0]
+    out = Hits(t=jax.ShapeDtypeStruct((n,), jnp.float32),
+               hit=jax.ShapeDtypeStruct((n,), jnp.bool_),
+               normal=jax.ShapeDtypeStruct((n, 3), jnp.float32),
+               surface=jax.ShapeDtypeStruct((n,), jnp.int32),
+               steps=jax.ShapeDtypeStruct((n,), jnp.int32))
+
+    def run(*values):
+        scene, rays, t_min, t_max = jax.tree_util.tree_unflatten(
+            tree, [jnp.asarray(v) for v in values])
+        hits = intersect_rays(scene, tape, rays, t_min, t_max, stats=stats, prune=prune)
+        return jax.tree_util.tree_map(np.asarray, hits)
+
+    return jax.pure_callback(run, out, *flat, vmap_method="sequential")
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _differentiable_hits(normals, scene_rays, hits: Hits):
+    """(t, normal) of `hits` found on the tape path, with the derivatives of
+    `finish_hits` (the implicit function theorem on the straight point function) with
+    respect to the scene and rays: a custom JVP, so that a jitted call that is not
+    differentiated never compiles the point function of a long program."""
+    return hits.t, hits.normal
+
+
+@_differentiable_hits.defjvp
+def _differentiable_hits_jvp(normals, primals, tangents):
+    scene_rays, hits = primals
+
+    def finished(scene_rays):
+        scene, rays = scene_rays
+        h = finish_hits(scene.field, scene, rays, hits.t, hits.hit, hits.steps, normals)
+        return h.t, h.normal
+
+    _, (dt, dnormal) = jax.jvp(finished, (scene_rays,), (tangents[0],))
+    return (hits.t, hits.normal), (dt, dnormal)
 
 
 def finish_hits(g, scene, rays, t_raw, hit, steps, normals, which=None) -> Hits:

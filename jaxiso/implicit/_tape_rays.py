@@ -23,7 +23,8 @@ memory grow with the program). Same answer as t-bisection, found breadth-first:
   piece's pruned tape at the piece's midpoint (forward-mode through the evaluator).
 
 The driver runs on the host (each level is a jitted call on bucketed shapes), so it needs
-concrete inputs: under jit the scene runs the straight path (`render` / `intersect` say so).
+concrete inputs: under jit / vmap the scene calls it through `jax.pure_callback`
+(`ImplicitSurface.intersect_tape`).
 Rays that share a group should be near each other (`render` orders them in Z-order tiles).
 """
 

@@ -10,10 +10,8 @@ vmap over a whole 512x512 image).
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import math
-import warnings
 
 import jax
 import jax.numpy as jnp
@@ -102,35 +100,12 @@ def from_zorder(x, tile: int, height: int, width: int):
 
 
 def runnable_plan(plan: Plan, scene, inputs, n_rays: int) -> Plan:
-    """`plan`, or when it is a tape plan and `inputs` hold values that have no concrete
-    value on the host (under jit or vmap: the host-driven tape path cannot run; eager
-    `jax.grad` / `jvp` values have one), the scene's straight plan, with a warning (a
-    long program compiles for minutes on the straight path)."""
-    if not plan.tape:
-        return plan
-    if not hasattr(scene, "intersect_tape"):
+    """`plan`, checked: a tape plan needs a scene with a tape path. (Under jit / vmap the
+    tape path's host driver runs in a `jax.pure_callback` on the run-time values.)"""
+    if plan.tape and not hasattr(scene, "intersect_tape"):
         raise TypeError(f"Plan(tape=True) runs ImplicitSurface programs only, not "
                         f"{type(scene).__name__}")
-    if all(_on_host(x) for x in jax.tree_util.tree_leaves(inputs)):
-        return plan
-    warnings.warn(
-        "this scene's long program runs on the tape path, which is host-driven and needs "
-        "concrete inputs; under jit/vmap it is compiled straight instead (compile time "
-        "and memory grow with the program). Call intersect/render outside jit and vmap "
-        "(eager jax.grad is fine) to use the tape path.", stacklevel=3)
-    return dataclasses.replace(plan, tape=False, tile=8)
-
-
-def _on_host(x) -> bool:
-    """Whether x has a concrete value (arrays; tracers of eager grad/jvp do, of jit and
-    vmap do not)."""
-    if not isinstance(x, jax.core.Tracer):
-        return True
-    try:
-        bool(jnp.ravel(jax.lax.stop_gradient(x))[:1].sum() == 0)
-    except Exception:  # ConcretizationTypeError and its kin: a jit / vmap tracer
-        return False
-    return True
+    return plan
 
 
 @functools.partial(jax.jit, static_argnums=(4,))
@@ -140,7 +115,8 @@ def _intersect(scene, rays, t_min, t_max, plan):
 
 def intersect_traced(scene, rays: Rays, t_min, t_max, plan: Plan) -> Hits:
     """`intersect` without the checks and the jit (for callers already under jit; a
-    tape plan runs eagerly: its driver is on the host)."""
+    tape plan is not jitted here: its driver is on the host, called directly on concrete
+    values and through a callback on traced ones)."""
     shape = rays.shape
     n = math.prod(shape)
     if plan.tape:
