@@ -65,7 +65,7 @@ def intersect(scene, rays: Rays, *, t_min=0.0, t_max=jnp.inf, plan: Plan | None 
         raise TypeError(f"plan must be a jaxiso.Plan, got {type(plan).__name__}")
     t_min = jnp.broadcast_to(jnp.asarray(t_min, jnp.float32), shape)
     t_max = jnp.broadcast_to(jnp.asarray(t_max, jnp.float32), shape)
-    plan = runnable_plan(plan, scene, (scene, rays, t_min, t_max), n)
+    check_plan(plan, scene)
     if plan.tape:
         return intersect_traced(scene, rays, t_min, t_max, plan)
     return _intersect(scene, rays, t_min, t_max, plan)
@@ -99,13 +99,12 @@ def from_zorder(x, tile: int, height: int, width: int):
     return from_tiles(x, tile, height, width)
 
 
-def runnable_plan(plan: Plan, scene, inputs, n_rays: int) -> Plan:
-    """`plan`, checked: a tape plan needs a scene with a tape path. (Under jit / vmap the
-    tape path's host driver runs in a `jax.pure_callback` on the run-time values.)"""
+def check_plan(plan: Plan, scene) -> None:
+    """A tape plan needs a scene with a tape path (which runs eagerly, or under jit /
+    vmap in a `jax.pure_callback`)."""
     if plan.tape and not hasattr(scene, "intersect_tape"):
         raise TypeError(f"Plan(tape=True) runs ImplicitSurface programs only, not "
                         f"{type(scene).__name__}")
-    return plan
 
 
 @functools.partial(jax.jit, static_argnums=(4,))

@@ -23,11 +23,11 @@ from .._core import Plan, Rays, concrete, facing, pytree_dataclass
 from ._image import Image
 from ._plan import (
     _check_scene,
+    check_plan,
     from_tiles,
     from_zorder,
     intersect_traced,
     plan_for,
-    runnable_plan,
     to_tiles,
     to_zorder,
 )
@@ -148,8 +148,7 @@ def render(scene, camera: Camera, *, shading: Shading | None = None,
     plan = plan_for(scene, -(-camera.width * camera.height // n_dev)) if plan is None else plan
     if not isinstance(plan, Plan):
         raise TypeError(f"plan must be a jaxiso.Plan, got {type(plan).__name__}")
-    plan = runnable_plan(plan, scene, (scene, camera, shading, light),
-                         camera.width * camera.height)
+    check_plan(plan, scene)
     if plan.tape:
         if mesh is not None:
             warnings.warn("a tape plan (long program) renders on the default device only",
