@@ -22,6 +22,7 @@ from ..arith import _affine as aa
 from ..arith import _tape
 from ..arith._interval import Interval
 from ._field import enclosure, extended, ray_boxes
+from .program import _eval
 
 N_PIECES = 32
 PIECE = 2.0**-6   # of the domain's diagonal
@@ -124,17 +125,15 @@ def _measure_tape(tape, lo, hi, rest) -> tuple[str, str]:
     s0, s1 = jnp.zeros((1, N_PIECES)), jnp.ones((1, N_PIECES))
     one = _tape.take_regions(tape, jnp.zeros(1, jnp.int32))
     rest = [jnp.asarray(v, jnp.float32) for v in rest]
-    vals = _tape_eval(one, [pts[None, ..., c].reshape(1, -1) for c in range(3)] + rest)
+    vals = _eval(one, [pts[None, ..., c].reshape(1, -1) for c in range(3)] + rest)
     widths = {}
     for arithmetic in ("interval", "affine"):
         boxes = ray_boxes(p[None], D[None], s0, s1, arithmetic)
         point = (lambda v: Interval(v, v)) if arithmetic == "interval" else (
             lambda v: aa.as_affine(v, 1))
-        r = _tape_eval(one, boxes + [point(v) for v in rest])
+        r = _eval(one, boxes + [point(v) for v in rest])
         r = aa.to_interval(r) if arithmetic == "affine" else r
         widths[arithmetic] = (r.hi - r.lo)[0]
     return _pick(np.asarray(vals).reshape(N_PIECES, SAMPLES), widths, TAPE_COST_RATIO,
                  f"a program of {int(tape.n)} instructions on the tape path; ")
 
-
-_tape_eval = jax.jit(_tape.evaluate)
