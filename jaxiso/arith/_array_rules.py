@@ -104,9 +104,31 @@ def _dot_operands(lhs, rhs, params):
     return rhs, lhs, lambda b, c: lax.dot_general(c, b, **params)
 
 
-def _all_defined(dot, defined, const):
-    undefined = dot((~defined).astype(jnp.float32), jnp.ones_like(const, jnp.float32))
-    return undefined == 0
+def _all_defined(defined, box_is_lhs: bool, box_shape, const_shape, dimension_numbers):
+    """Each output entry of the dot is defined when every box entry it sums is: `all`
+    over the box's contracting axes, laid out as dot_general's output (batch axes, lhs
+    free axes, rhs free axes). A reduction, not a second matmul."""
+    (lc, rc), (lb, rb) = dimension_numbers
+    box_c, box_b = (lc, lb) if box_is_lhs else (rc, rb)
+    const_c, const_b = (rc, rb) if box_is_lhs else (lc, lb)
+    ok = jnp.broadcast_to(defined, box_shape)
+    box_free = [a for a in range(len(box_shape)) if a not in box_c and a not in box_b]
+    ok = jnp.all(jnp.transpose(ok, tuple(box_b) + tuple(box_free) + tuple(box_c)),
+                 axis=tuple(range(len(box_b) + len(box_free), len(box_shape))))
+    const_free = [const_shape[a] for a in range(len(const_shape))
+                  if a not in const_c and a not in const_b]
+    nb = len(box_b)
+    if box_is_lhs:  # (batch, box free, const free)
+        ok = ok.reshape(ok.shape + (1,) * len(const_free))
+        return jnp.broadcast_to(ok, ok.shape[:nb + len(box_free)] + tuple(const_free))
+    # (batch, const free, box free)
+    ok = ok.reshape(ok.shape[:nb] + (1,) * len(const_free) + ok.shape[nb:])
+    return jnp.broadcast_to(ok, ok.shape[:nb] + tuple(const_free) + ok.shape[nb + len(const_free):])
+
+
+def _defined_of(lhs, box, const, params):
+    return _all_defined(box.defined, is_lifted(lhs), shape_of(box), jnp.shape(const),
+                        params["dimension_numbers"])
 
 
 def dot_interval(lhs, rhs, **params) -> Interval:
@@ -118,7 +140,7 @@ def dot_interval(lhs, rhs, **params) -> Interval:
     radius = dot(jnp.minimum(r, big), jnp.abs(const))
     unbounded = dot(jnp.isinf(r).astype(m.dtype), (const != 0).astype(m.dtype)) > 0
     radius = jnp.where(unbounded, jnp.inf, radius)
-    return Interval(center - radius, center + radius, _all_defined(dot, box.defined, const))
+    return Interval(center - radius, center + radius, _defined_of(lhs, box, const, params))
 
 
 def dot_affine(lhs, rhs, **params) -> Affine:
@@ -126,7 +148,7 @@ def dot_affine(lhs, rhs, **params) -> Affine:
     box, const, dot = _dot_operands(lhs, rhs, params)
     devs = jax.vmap(lambda d: dot(d, const), in_axes=-1, out_axes=-1)(box.dev)
     return Affine(dot(box.center, const), devs, dot(box.err, jnp.abs(const)),
-                  _all_defined(dot, box.defined, const))
+                  _defined_of(lhs, box, const, params))
 
 
 # ------------------------------------------------------------------ library functions
