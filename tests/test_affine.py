@@ -120,6 +120,21 @@ def test_empty_propagates_in_affine():
     assert float(s.hi) == np.inf
 
 
+def test_constant_shift_moves_the_centre_only():
+    """x + c and x - c for a constant c (a network's bias): exact in the centre, the
+    deviations and error unchanged, broadcast to c's shape; a NaN constant gives the empty
+    form (NaN error term), as `as_affine` makes it."""
+    x = form(1.0, [0.5], 0.25)
+    b = jnp.asarray([1.0, -2.0, 0.5], jnp.float32)
+    for out, sign in ((aa.add(x, b), 1.0), (aa.add(b, x), 1.0), (aa.sub(x, b), -1.0)):
+        assert out.center.tolist() == (1.0 + sign * np.asarray(b)).tolist()
+        assert out.dev.shape == (3, 1) and out.dev[:, 0].tolist() == [0.5] * 3
+        assert out.err.tolist() == [0.25] * 3
+    empty = aa.to_interval(aa.add(x, jnp.asarray([0.0, jnp.nan], jnp.float32)))
+    assert float(empty.lo[0]) == 0.25 and np.isnan(float(empty.lo[1]))
+    assert np.isnan(float(empty.hi[1]))
+
+
 def test_overflowed_point_stays_a_point_not_the_whole_line():
     # x^500 overflows float32 to [inf, inf] beyond |x| ~ 1.19: in affine form that must
     # stay +inf (a box that cannot hold a root), not centre 0 with infinite error

@@ -75,7 +75,8 @@ __all__ = [
 
 
 def _broadcast(x: Affine, shape) -> Affine:
-    if tuple(shape) == jnp.shape(x.center):
+    shape = tuple(shape)
+    if shape == jnp.shape(x.center) == jnp.shape(x.err) == jnp.shape(x.dev)[:-1]:
         return x
     return Affine(jnp.broadcast_to(x.center, shape),
                   jnp.broadcast_to(x.dev, tuple(shape) + x.dev.shape[-1:]),
@@ -166,7 +167,11 @@ def _linearized(x: Affine, alpha, d_lo, d_hi, fallback_iv: Interval, defined) ->
     delta = 0.5 * (d_hi - d_lo)
     out = Affine(alpha * x.center + zeta, alpha[..., None] * x.dev,
                  ia._times(jnp.abs(alpha), x.err) + delta, defined)
-    return _guard(out, fallback_iv)
+    # every component is finite when this bound on their magnitudes is (rounding is
+    # monotone); it reads per-element coefficients only, so XLA computes each component
+    # of the result on its own (a test on the result itself fused all of them into each)
+    bound = jnp.abs(alpha) * (jnp.abs(x.center) + radius(x)) + jnp.abs(zeta) + delta
+    return _select(jnp.isfinite(bound), out, _interval_fallback(fallback_iv, x.n))
 
 
 # Relative safety margin (in f32 ulps) on linearisation errors: the endpoint values,
@@ -180,26 +185,34 @@ def _pad(delta_terms, dtype):
     return _LIN_ULPS * eps * delta_terms + float(jnp.finfo(dtype).tiny)
 
 
-def _chebyshev(x: Affine, g, dg, dg_inv, convex, iv: Interval, fallback_iv: Interval):
+def _chebyshev(x: Affine, g, dg, dg_inv, convex, iv: Interval, fallback_iv: Interval,
+               g_dg=None, abs_pad=0.0):
     """Chebyshev linearisation of a convex (or concave, ``convex=False``) function on the
     range `iv` of `x` (already restricted to the domain).
 
     The slope is the chord's; the upper error is at the endpoints; the lower error is
     bounded by the tangent at ``xi = dg_inv(slope)`` clipped into the range, which is a
     valid bound for any xi, so rounding in dg_inv cannot break inclusion.
+
+    `g_dg` (optional): ``v -> (g(v), dg(v))`` from one transcendental (its absolute
+    rounding bounded by `abs_pad`); a point range then takes slope 0 (its tangent term
+    is 0 whatever the slope), so no derivative is evaluated at the range's end.
     """
     a, b = iv.lo, iv.hi
     s = jnp.where(convex, 1.0, -1.0)
     ga, gb = s * g(a), s * g(b)
     w = b - a
-    beta = jnp.where(w > 0, (gb - ga) / jnp.where(w > 0, w, 1.0), s * dg(a))
+    point_slope = s * dg(a) if g_dg is None else jnp.where(jnp.isnan(w), jnp.nan, 0.0)
+    beta = jnp.where(w > 0, (gb - ga) / jnp.where(w > 0, w, 1.0), point_slope)
     xi = jnp.clip(dg_inv(s * beta), a, b)
     xi = jnp.where(jnp.isnan(xi), 0.5 * (a + b), xi)
     h_a, h_b = ga - beta * a, gb - beta * b
-    hp = s * dg(xi) - beta
+    g_xi, dg_xi = (g(xi), dg(xi)) if g_dg is None else g_dg(xi)
+    hp = s * dg_xi - beta
     d_hi = jnp.maximum(h_a, h_b)
-    d_lo = (s * g(xi) - beta * xi) + jnp.minimum(ia._times(hp, a - xi), ia._times(hp, b - xi))
-    pad = _pad(jnp.abs(ga) + jnp.abs(gb) + jnp.abs(beta) * (jnp.abs(a) + jnp.abs(b)), a.dtype)
+    d_lo = (s * g_xi - beta * xi) + jnp.minimum(ia._times(hp, a - xi), ia._times(hp, b - xi))
+    pad = _pad(jnp.abs(ga) + jnp.abs(gb) + jnp.abs(beta) * (jnp.abs(a) + jnp.abs(b)),
+               a.dtype) + abs_pad
     d_lo, d_hi = d_lo - pad, d_hi + pad
     # back from s*g to g: alpha = s*beta, interval s*[d_lo, d_hi]
     lo_g = jnp.where(convex, d_lo, -d_hi)

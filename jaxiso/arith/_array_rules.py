@@ -257,5 +257,14 @@ def elu_affine(x, *rest, body):
     def dg_inv(slope):  # the tangent point of a chord's slope (the kink 0 above alpha)
         return jnp.where(slope < alpha, jnp.log(jnp.maximum(slope, 1e-30) / alpha), 0.0)
 
+    def g_dg(v):  # both from one exp (alpha (e^v - 1) is off by ~1 ulp of alpha)
+        e = jnp.exp(jnp.minimum(v, 0.0))
+        return jnp.where(v > 0, v, alpha * (e - 1.0)), jnp.where(v > 0, 1.0, alpha * e)
+
     iv = aa._range(x)
-    return aa._chebyshev(x, g, dg, dg_inv, True, iv, ia.monotone_increasing(g)(iv))
+    eps = float(jnp.finfo(iv.lo.dtype).eps)
+    out = aa._chebyshev(x, g, dg, dg_inv, True, iv, ia.monotone_increasing(g)(iv),
+                        g_dg=g_dg, abs_pad=4.0 * eps * alpha)
+    # on a range >= 0 elu is x itself: exact, no rounding pad (the pads of neurons that
+    # are surely on were the floor of a network's enclosure width on small pieces)
+    return aa._select(iv.lo >= 0, x, out)
