@@ -17,9 +17,10 @@ from jaxiso.implicit._field import contains_any, enclosure, extended, ray_boxes,
 # ------------------------------------------------------------------------- reference
 
 
-def stack_bisect(test, d_max, active, max_steps):
+def stack_bisect(test, d_max, active, max_steps, d_start=0):
     """Depth-first bisection of [0, 1] with an explicit stack per ray; all rays advance
-    together so that `test` sees one batch per round.
+    together so that `test` sees one batch per round. The stack starts with the pieces of
+    depth min(d_start, d_max) in order.
 
     test(s0 [P], s1 [P]) -> (possible, finite, small), numpy bool [P] each. A ray tests
     the piece on top of its stack: it accepts it (possible, finite, and at depth d_max or
@@ -28,7 +29,9 @@ def stack_bisect(test, d_max, active, max_steps):
     Returns (s [P] float32, midpoint of the accepted piece or inf; hit [P]; steps [P]).
     """
     n = len(d_max)
-    stacks = [[(0, 0)] if a else [] for a in np.asarray(active)]
+    d0 = np.minimum(d_start, d_max)
+    stacks = [[(k, d0[i]) for k in reversed(range(2 ** int(d0[i])))] if a else []
+              for i, a in enumerate(np.asarray(active))]
     steps = np.zeros(n, np.int32)
     hit = np.zeros(n, bool)
     s = np.full(n, np.inf, np.float32)
@@ -60,17 +63,20 @@ def _packet(test, d_max, active, max_steps):
     return jax.vmap(one)
 
 
-def _kernels(test, max_steps, lanes, paths=("packet", "lanes", "one_loop")):
+def _kernels(test, max_steps, lanes, paths=("packet", "lanes", "one_loop"), d_start=0):
     """{path: jitted (p, D, d_max, active) -> Result}: the packet path, lanes, and
-    `t_bisect_lanes` with lanes None (one loop over the batch)."""
+    `t_bisect_lanes` with lanes None (one loop over the batch); the last two start at
+    depth `d_start` (the packet path at 0)."""
     def packet(p, D, d_max, active):
         return _packet(test, d_max, active, max_steps)(p, D, d_max, active)
 
     def on_lanes(p, D, d_max, active):
-        return _bisect.t_bisect_lanes(test, p, D, d_max, active, lanes, max_steps)
+        return _bisect.t_bisect_lanes(test, p, D, d_max, active, lanes, max_steps,
+                                      d_start=d_start)
 
     def one_loop(p, D, d_max, active):
-        return _bisect.t_bisect_lanes(test, p, D, d_max, active, None, max_steps)
+        return _bisect.t_bisect_lanes(test, p, D, d_max, active, None, max_steps,
+                                      d_start=d_start)
 
     kernels = {"packet": packet, "lanes": on_lanes, "one_loop": one_loop}
     return {path: jax.jit(kernels[path]) for path in paths}
@@ -168,6 +174,41 @@ def test_t_bisection_matches_stack_reference_exact_oracle(max_steps):
     # eagerly (packet path)
     _assert_same(_packet(_oracle, d_max, active, max_steps)(p, D, d_max, active), ref,
                  "eager")
+
+
+@pytest.mark.parametrize("d_start", [3, 9])
+def test_t_bisection_from_a_start_depth_matches_stack_reference(d_start):
+    """Walks that start on the 2^d_start pieces of a depth (rays whose d_max is smaller
+    start at d_max) test and accept exactly what a stack started there does."""
+    p, D, d_max, active = _oracle_rays()
+    max_steps = 256 * _bisect.MAX_DEPTH
+    ref = stack_bisect(lambda s0, s1: _oracle(p, D, s0, s1), d_max, active, max_steps,
+                       d_start)
+    assert ref[1].sum() > 10 and (~ref[1]).sum() > 10
+    for path, run in _kernels(_oracle, max_steps, lanes=32, paths=("lanes", "one_loop"),
+                              d_start=d_start).items():
+        _assert_same(run(p, D, d_max, active), ref, path)
+
+
+def test_start_depth_is_the_first_depth_excluding_half_the_pieces():
+    """A test that excludes a piece only when it is at most 2^-5 long and holds no root
+    (`_oracle` otherwise): from depth 5 on nearly every piece of a rootless ray and most
+    of the others are excluded, above it none, so the pilot starts the walks at 5; with
+    exclusion from 2^-2 it starts at 2, and a test excluding nothing at 7 (the deepest
+    the pilot looks)."""
+    p, D, d_max, active = _oracle_rays()
+    d_max = np.full_like(d_max, 20)
+
+    def test_from(length):
+        def test(p, D, s0, s1):
+            r = _oracle(p, D, s0, s1)
+            return r._replace(possible=r.possible | ((s1 - s0) > length))
+        return test
+
+    for length, expected in ((2.0**-5, 5), (2.0**-2, 2), (0.0, _bisect.PILOT_DEPTH)):
+        got = jax.jit(functools.partial(_bisect.start_depth, test_from(length)))(
+            p, D, d_max, active)
+        assert int(got) == expected, (length, int(got))
 
 
 # ------------------------------------------------------- t-bisection, catalogue surfaces

@@ -236,3 +236,21 @@ def test_shared_network_hit_masks_match_float64(name):
     ref = _reference_hits(m.params, m.activation, o, d)
     assert ref.sum() > 40
     assert np.sum(hit != ref) <= 2, (np.sum(hit & ~ref), np.sum(~hit & ref))
+
+
+def test_lanes_start_depth_keeps_hits_and_saves_steps():
+    """On persistent lanes the walks start at the depth a pilot measures (fox: pieces
+    above ~2^-5 of the segment are almost never excluded); the hits are those of the
+    packet path, which walks from depth 0, in fewer steps."""
+    m = _need("fox")
+    scene = ji.ImplicitSurface(m, (-1,) * 3, (1,) * 3, params=m.params, eps=2.0**-10)
+    cam = ji.Camera.look_at((3.0, 0.8, 1.2), (0, 0, 0), (0, 1, 0), 35.0, 32, 32)
+    rays = cam.rays()
+    lanes = ji.intersect(scene, rays, plan=ji.Plan(tile=8, lanes=256))
+    packets = ji.intersect(scene, rays, plan=ji.Plan(tile=8))
+    assert int(packets.hit.sum()) > 50
+    np.testing.assert_array_equal(np.asarray(lanes.hit), np.asarray(packets.hit))
+    np.testing.assert_array_equal(np.asarray(lanes.t), np.asarray(packets.t))
+    walked = np.asarray(packets.steps) > 0
+    assert np.mean(np.asarray(lanes.steps)[walked]) < 0.9 * np.mean(
+        np.asarray(packets.steps)[walked])

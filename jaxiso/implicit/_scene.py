@@ -350,7 +350,10 @@ def run_bisection(method, test, p, D, inside, eps, max_steps=None, lanes=None, v
         # packet visits the union of its rays' candidate pieces
         max_steps = 256 * _bisect.MAX_DEPTH * (8 if method == "k-bisection" else 1)
     if method == "t-bisection" and lanes is not None:
-        return _bisect.t_bisect_lanes(test, p, D, d_max, inside, lanes, max_steps, verify)
+        # a queue of rays on lanes is big enough to pay for measuring where to start
+        d_start = _bisect.start_depth(test, p, D, d_max, inside)
+        return _bisect.t_bisect_lanes(test, p, D, d_max, inside, lanes, max_steps, verify,
+                                      d_start)
     if method == "t-bisection":
         return _t_bisection(test, p, D, d_max, inside, max_steps, verify)
     if method == "k-bisection":
