@@ -372,6 +372,10 @@ def casters(net, cfg, spelunking):
            "ji.intersect(S.replace(arithmetic='interval'), rays)"),
           ("jaxiso affine", S.replace(arithmetic="affine"),
            "ji.intersect(S.replace(arithmetic='affine'), rays)"),
+          # hits by sign change only: no first-order "touching" pieces (grazing rays at
+          # silhouettes, which the sign-change reference counts as misses)
+          ("jaxiso verify=sign", S.replace(verify="sign"),
+           "ji.intersect(S.replace(verify='sign'), rays)"),
           ("sphere L=net", S.replace(method="sphere", lipschitz=lip),
            "ji.intersect(S.replace(method='sphere', lipschitz=m.lipschitz), rays)")]
     if net.sdf:

@@ -61,7 +61,8 @@ def test_tiny_run_writes_json(tmp_path):
 
     rows = result["rays"]["rows"]
     labels = [r["label"] for r in rows]
-    assert labels == ["jaxiso default", "jaxiso interval", "jaxiso affine", "sphere L=net",
+    assert labels == ["jaxiso default", "jaxiso interval", "jaxiso affine",
+                      "jaxiso verify=sign", "sphere L=net",
                       "sphere L=1", "hand sampling 128"]  # the fox is an SDF: L=1 too
     for r in rows:
         assert "error" not in r, r
