@@ -143,3 +143,37 @@ def test_overflowed_point_stays_a_point_not_the_whole_line():
     F = ji.extend(lambda x, y, z: x**500 + 0.5 * jnp.abs(y) ** 35 + 0.5 * z**4 - 1.0, "affine")
     r = aa.to_interval(F(ji.interval(1.3, 1.4), ji.interval(-0.1, 0.1), ji.interval(0.0, 0.2)))
     assert not bool(ia.contains(r, 0.0))
+
+
+@pytest.mark.parametrize("lhs_shape, rhs_shape, dims", [
+    ((3, 4), (4, 5), (((1,), (0,)), ((), ()))),
+    ((2, 3, 4), (2, 4, 5), (((2,), (1,)), ((0,), (0,)))),
+    ((2, 6, 3), (3, 2, 7), (((2,), (0,)), ((0,), (1,)))),
+    ((5, 4, 3), (3, 4), (((1, 2), (1, 0)), ((), ())))])
+def test_dot_defined_flags_as_a_reduction(lhs_shape, rhs_shape, dims):
+    """An output entry of a dot with a box operand is defined when every box entry it
+    sums is: the reduction equals the count of undefined entries by a second dot (the
+    former rule), box on either side, with batch and several contracting axes."""
+    from jax import lax
+
+    from jaxiso.arith._array_rules import _all_defined
+    rng = np.random.default_rng(0)
+    for box_is_lhs in (True, False):
+        box_shape, const_shape = (lhs_shape, rhs_shape) if box_is_lhs else (rhs_shape,
+                                                                            lhs_shape)
+        defined = rng.random(box_shape) > 0.15
+        undefined = (~defined).astype(np.float32)
+        ones = np.ones(const_shape, np.float32)
+        count = (lax.dot_general(undefined, ones, dims) if box_is_lhs
+                 else lax.dot_general(ones, undefined, dims))
+        got = _all_defined(jnp.asarray(defined), box_is_lhs, box_shape, const_shape, dims)
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(count) == 0)
+
+
+def test_relu_of_an_interval_and_broadcast_zero():
+    """max(x, 0) with x an Interval (lifted to the error term) and a zero of a larger
+    shape: the relu rule, broadcast to the zero's shape."""
+    out = aa.maximum(ji.interval(-1.0, 2.0), jnp.zeros(3))
+    iv = aa.to_interval(out)
+    assert iv.lo.shape == (3,) and out.dev.shape == (3, 1)
+    assert np.all(np.asarray(iv.lo) <= 0.0) and np.all(np.asarray(iv.hi) >= 2.0)

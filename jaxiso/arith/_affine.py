@@ -333,9 +333,9 @@ def _is_zero(x) -> bool:
 def maximum(a, b) -> Affine:
     """max(a, b) = b + relu(a - b): exactly a or b where the difference has a sign."""
     if _is_zero(b) or _is_zero(a):  # relu: one rule, no shift and no selects around it
-        x = a if _is_zero(b) else b
+        x, zero = (a, b) if _is_zero(b) else (b, a)
         (x,) = _lift(x)
-        shape = jnp.broadcast_shapes(jnp.shape(x.center), jnp.shape(b if x is a else a))
+        shape = jnp.broadcast_shapes(jnp.shape(x.center), jnp.shape(zero))
         return _broadcast(relu(x), shape)
     a, b = _lift(a, b)
     d = _range(sub(a, b))
