@@ -76,9 +76,10 @@ def test_tiny_run_writes_json(tmp_path):
     assert default["scene"]["arithmetic"] and default["plan"].startswith("Plan(")
     assert rows[1]["scene"]["arithmetic"] == "interval"
     assert rows[2]["scene"]["arithmetic"] == "affine"
-    assert rows[4]["scene"]["lipschitz"] == 1.0 and rows[3]["scene"]["lipschitz"] > 1.0
+    assert rows[3]["scene"]["verify"] == "sign"
+    assert rows[5]["scene"]["lipschitz"] == 1.0 and rows[4]["scene"]["lipschitz"] > 1.0
     # the accurate casters find the fox's few hits where the reference does
-    hand = rows[5]
+    hand = rows[6]
     assert hand["mask_agreement"] > 0.97 and hand["steps_mean"] == 136
     assert hand["depth_err_median"] < 1e-2
 
