@@ -8,7 +8,10 @@ queue runs dry and few lanes are still busy, their rays move, with their state, 
 narrower loop (width / 8, down to `min_width`), so the slow tail does not pay for idle
 lanes. Lanes step `refill_every` times between refills: refilling costs a gather and a
 scatter per state array, and a lane that finishes early idles until the next refill
-(measured for the implicits in benchmarks/NOTES.md: 4 was best).
+(measured for the implicits in benchmarks/NOTES.md: 4 was best). An optional `settle`
+runs after each such stretch, on the lanes' states together: work that only some lanes
+need now and then (checking a bisection's hit) is gathered there instead of being done
+by every lane at every step.
 """
 
 from __future__ import annotations
@@ -35,14 +38,16 @@ def _select(mask, new, old):
         lambda a, b: jnp.where(mask.reshape((-1,) + (1,) * (b.ndim - 1)), a, b), new, old)
 
 
-def run_rays(step, busy, state, results, *, max_steps: int, steps: str, lanes=None):
+def run_rays(step, busy, state, results, *, max_steps: int, steps: str, lanes=None,
+             settle=None):
     """Iterate per-ray `state` (leaves [P, ...]) until no ray is busy.
 
     step: state -> state (rays not busy must come back unchanged); busy: state -> [P]
     bool; results: the state keys to return; steps: the key of the per-ray iteration
     counter, which bounds each ray at `max_steps`. lanes None: one `while_loop` over the
     packet (until its slowest ray is done); an int: persistent lanes with refill. Both
-    give the same per-ray results. Returns {key: [P, ...]} for `results`.
+    give the same per-ray results. settle (lanes only): ``(state, live) -> state`` (see
+    `run_lanes`). Returns {key: [P, ...]} for `results`.
     """
     if lanes is None:
         def cond(c):
@@ -66,11 +71,11 @@ def run_rays(step, busy, state, results, *, max_steps: int, steps: str, lanes=No
 
     return run_lanes(step, lambda s: ~busy(s) | (s[steps] >= max_steps), queue,
                      jnp.sum(going).astype(jnp.int32), {k: state[k] for k in results}, write,
-                     lanes=min(int(lanes), going.shape[0]))
+                     lanes=min(int(lanes), going.shape[0]), settle=settle)
 
 
 def run_lanes(step, done, queue, n_queue, results, write, *, lanes: int,
-              refill_every: int = 4, min_width: int = 32):
+              refill_every: int = 4, min_width: int = 32, settle=None):
     """Run the rays of `queue` to completion on persistent lanes.
 
     Args:
@@ -85,6 +90,9 @@ def run_lanes(step, done, queue, n_queue, results, write, *, lanes: int,
       write: (results, state, target) -> results, where target [L] int32 is the output row
         of each finished lane and N elsewhere (scatter with mode="drop").
       lanes: static width of the first phase.
+      settle: None or ``(state, live) -> state``, run on all lanes ([L, ...] leaves; live
+        [L] bool: the lane holds a queued ray) after every `refill_every` steps, before
+        finished lanes are written.
 
     Returns:
       results after every queued ray was written.
@@ -95,12 +103,12 @@ def run_lanes(step, done, queue, n_queue, results, write, *, lanes: int,
     for i, width in enumerate(widths):
         stop_busy = widths[i + 1] if i + 1 < len(widths) else 0
         results, queue, n_queue = _phase(step, done, queue, n_queue, results, write, n_out,
-                                         width, stop_busy, refill_every)
+                                         width, stop_busy, refill_every, settle)
     return results
 
 
 def _phase(step, done, queue, n_queue, results, write, n_out, width, stop_busy,
-           refill_every):
+           refill_every, settle):
     """Run queued rays on `width` lanes until the queue is empty and at most `stop_busy`
     lanes are busy; return (results, the busy lanes' states as a queue, their count)."""
     q_len = jax.tree_util.tree_leaves(queue)[0].shape[0]
@@ -123,6 +131,8 @@ def _phase(step, done, queue, n_queue, results, write, n_out, width, stop_busy,
     def body(carry):
         nxt, lane, results = carry
         live, state = lax.fori_loop(0, refill_every, one, lane)
+        if settle is not None:
+            state = settle(state, live)
         finished = live & done(state)
         results = write(results, state, jnp.where(finished, state["idx"], n_out))
         fresh_live, fresh = load(nxt + jnp.cumsum(finished.astype(jnp.int32)) - 1)

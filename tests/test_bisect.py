@@ -17,7 +17,7 @@ from jaxiso.implicit._field import contains_any, enclosure, extended, ray_boxes,
 # ------------------------------------------------------------------------- reference
 
 
-def stack_bisect(test, d_max, active, max_steps, d_start=0):
+def stack_bisect(test, d_max, active, max_steps, d_start=0, verify=None):
     """Depth-first bisection of [0, 1] with an explicit stack per ray; all rays advance
     together so that `test` sees one batch per round. The stack starts with the pieces of
     depth min(d_start, d_max) in order.
@@ -25,7 +25,8 @@ def stack_bisect(test, d_max, active, max_steps, d_start=0):
     test(s0 [P], s1 [P]) -> (possible, finite, small), numpy bool [P] each. A ray tests
     the piece on top of its stack: it accepts it (possible, finite, and at depth d_max or
     small), splits it (possible, above d_max: first half on top), or drops it; it stops
-    on an accepted piece, an empty stack or after max_steps tests.
+    on an accepted piece, an empty stack or after max_steps tests. With `verify`
+    (``verify(s0, s1) -> bool [P]``), an accepted piece where verify fails is dropped.
     Returns (s [P] float32, midpoint of the accepted piece or inf; hit [P]; steps [P]).
     """
     n = len(d_max)
@@ -46,9 +47,12 @@ def stack_bisect(test, d_max, active, max_steps, d_start=0):
         w = np.float32(2.0) ** -d.astype(np.float32)  # exact powers of two
         s0, s1 = k.astype(np.float32) * w, (k + 1).astype(np.float32) * w
         possible, finite, small = (np.asarray(a) for a in test(s0, s1)[:3])
+        ok = np.ones(n, bool) if verify is None else np.asarray(verify(s0, s1))
         for i in live:
             steps[i] += 1
             if possible[i] and finite[i] and (d[i] >= d_max[i] or small[i]):
+                if not ok[i]:
+                    continue
                 hit[i] = True
                 s[i] = (np.float32(k[i]) + np.float32(0.5)) * w[i]
                 stacks[i].clear()
@@ -56,26 +60,29 @@ def stack_bisect(test, d_max, active, max_steps, d_start=0):
                 stacks[i] += [(2 * k[i] + 1, d[i] + 1), (2 * k[i], d[i] + 1)]
 
 
-def _packet(test, d_max, active, max_steps):
+def _packet(test, d_max, active, max_steps, verify=None):
     """The packet path: `t_bisect` per ray under vmap (test(p, D, s0, s1) per ray)."""
     def one(p, D, d_max, active):
-        return _bisect.t_bisect(functools.partial(test, p, D), d_max, active, max_steps)
+        check = None if verify is None else functools.partial(verify, p, D)
+        return _bisect.t_bisect(functools.partial(test, p, D), d_max, active, max_steps,
+                                check)
     return jax.vmap(one)
 
 
-def _kernels(test, max_steps, lanes, paths=("packet", "lanes", "one_loop"), d_start=0):
+def _kernels(test, max_steps, lanes, paths=("packet", "lanes", "one_loop"), d_start=0,
+             verify=None):
     """{path: jitted (p, D, d_max, active) -> Result}: the packet path, lanes, and
     `t_bisect_lanes` with lanes None (one loop over the batch); the last two start at
-    depth `d_start` (the packet path at 0)."""
+    depth `d_start` (the packet path at 0). verify: None or ``verify(p, D, s0, s1)``."""
     def packet(p, D, d_max, active):
-        return _packet(test, d_max, active, max_steps)(p, D, d_max, active)
+        return _packet(test, d_max, active, max_steps, verify)(p, D, d_max, active)
 
     def on_lanes(p, D, d_max, active):
-        return _bisect.t_bisect_lanes(test, p, D, d_max, active, lanes, max_steps,
+        return _bisect.t_bisect_lanes(test, p, D, d_max, active, lanes, max_steps, verify,
                                       d_start=d_start)
 
     def one_loop(p, D, d_max, active):
-        return _bisect.t_bisect_lanes(test, p, D, d_max, active, None, max_steps,
+        return _bisect.t_bisect_lanes(test, p, D, d_max, active, None, max_steps, verify,
                                       d_start=d_start)
 
     kernels = {"packet": packet, "lanes": on_lanes, "one_loop": one_loop}
@@ -187,6 +194,42 @@ def test_t_bisection_from_a_start_depth_matches_stack_reference(d_start):
     assert ref[1].sum() > 10 and (~ref[1]).sum() > 10
     for path, run in _kernels(_oracle, max_steps, lanes=32, paths=("lanes", "one_loop"),
                               d_start=d_start).items():
+        _assert_same(run(p, D, d_max, active), ref, path)
+
+
+def _floored_oracle(p, D, s0, s1):
+    """`_oracle` with an enclosure floor: the piece widened by D[..., 2] (absolute) on each
+    side, as a network's enclosure near its surface, so hundreds of pieces before a
+    root are possible at depth d_max and only verification tells them from the root's."""
+    root = p[..., 0]
+    possible = (root >= s0 - D[..., 2]) & (root <= s1 + D[..., 2])
+    return _bisect.BoxTest(possible, jnp.ones_like(possible), jnp.zeros_like(possible))
+
+
+def _root_inside(p, D, s0, s1):
+    """Verification for the oracles: the root lies in [s0, s1]."""
+    return (p[..., 0] >= s0) & (p[..., 0] <= s1)
+
+
+@pytest.mark.parametrize("d_start", [0, 4])
+def test_verified_walks_go_past_hundreds_of_failed_pieces(d_start):
+    """With a floor of 0.05 at depth 12 about 200 pieces before each root pass the test
+    and fail verification. Every path (lanes verify between refills, the others in
+    rounds of walks) goes on past all of them and agrees with the stack reference with
+    verification, bit for bit; and every root is found (once a round limit of 64 walks
+    lost these rays)."""
+    p, D, d_max, active = _oracle_rays()
+    d_max = np.full_like(d_max, 12)
+    D[:, 2] = 0.05
+    max_steps = 256 * _bisect.MAX_DEPTH
+    ref = stack_bisect(lambda s0, s1: _floored_oracle(p, D, s0, s1), d_max, active,
+                       max_steps, d_start, verify=lambda s0, s1: _root_inside(p, D, s0, s1))
+    rooted = active & np.isfinite(p[:, 0])
+    np.testing.assert_array_equal(ref[1], rooted)
+    assert np.median(ref[2][rooted]) > 200  # most of them are failed pieces
+    paths = ("lanes", "one_loop") if d_start else ("packet", "lanes", "one_loop")
+    for path, run in _kernels(_floored_oracle, max_steps, lanes=32, paths=paths,
+                              d_start=d_start, verify=_root_inside).items():
         _assert_same(run(p, D, d_max, active), ref, path)
 
 

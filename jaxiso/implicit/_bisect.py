@@ -124,11 +124,11 @@ def _t_result(out) -> Result:
     return Result(jnp.where(out["hit"], s, jnp.inf), out["hit"], out["steps"])
 
 
-def _verified_rounds(run, verify, state, rounds: int):
+def _verified_rounds(run, verify, state):
     """Run the walk (`run`: state -> state), then check each ray's accepted piece with
     `verify` (state -> bool, True: a root is established there); a ray whose piece fails
-    moves on to the next piece and walks again, for at most `rounds` walks. A ray still
-    holding an unverified piece after the last walk reports no hit."""
+    moves on to the next piece and walks again, until no ray does. Every walk costs each
+    ray it moves at least a step, so max_steps bounds the rounds."""
     if verify is None:
         return run(state)
 
@@ -144,13 +144,10 @@ def _verified_rounds(run, verify, state, rounds: int):
 
     def cond(carry):
         r, st = carry
-        return (r == 0) | (jnp.any(st["going"]) & (r < rounds))
+        return (r == 0) | jnp.any(st["going"])
 
     _, out = lax.while_loop(cond, body, (jnp.int32(0), state))
     return out
-
-
-VERIFY_ROUNDS = 64  # walks per ray; each unverified piece costs one
 
 
 def t_bisect(test, d_max, active, max_steps: int, verify=None) -> Result:
@@ -171,7 +168,7 @@ def t_bisect(test, d_max, active, max_steps: int, verify=None) -> Result:
                         max_steps=max_steps, steps="steps")
 
     check = None if verify is None else (lambda st: verify(*piece(st["k"], st["d"])))
-    return _t_result(_verified_rounds(run, check, _t_start(d_max, active), VERIFY_ROUNDS))
+    return _t_result(_verified_rounds(run, check, _t_start(d_max, active)))
 
 
 def k_bisect(test, k_enter, k_exit, d_max, active, max_steps: int, verify=None) -> Result:
@@ -290,18 +287,32 @@ def t_bisect_lanes(test, p, D, d_max, active, lanes: int | None, max_steps: int,
     512^2, 4096 lanes) every 1 -> 0.42, 2 -> 0.68, 4 -> 0.82, 8 -> 0.80 Mrays/s with
     identical hits (benchmarks/NOTES.md).
 
+    On lanes, accepted pieces are verified between refills (`_settle_hits`): a piece that
+    fails sends its lane on along the ray at once, bounded only by max_steps. Without
+    lanes, in rounds of walks (`_verified_rounds`).
+
     Args:
       test: ``test(p, D, s0, s1) -> BoxTest`` vectorised over lanes ([L] / [L, 3]).
       p, D: [N, 3] ray segment start and vector; d_max: [N] int32; active: [N] bool.
       lanes: static number of lanes of the first phase, or None.
       max_steps: static bound on iterations per ray.
-      verify: None or ``verify(p, D, s0, s1) -> [N] bool`` (as in `t_bisect`), run once
-        per walk on every ray's accepted piece, outside the lanes.
+      verify: None or ``verify(p, D, s0, s1) -> [n] bool`` (as in `t_bisect`), run on
+        accepted pieces only.
       d_start: int32 [] or [N], the depth the walks start at (`start_depth`); pieces
         above it are not tested.
     """
     def step(st):
         return _t_step(lambda s0, s1: test(st["p"], st["D"], s0, s1), st)
+
+    state = dict(_t_start(d_max, active, d_start), p=p, D=D)
+    if lanes is not None and verify is not None:
+        # "sure": the lane's hit piece passed verify; a held piece keeps the lane busy
+        state["sure"] = jnp.zeros_like(state["hit"])
+        out = run_rays(step, lambda s: s["going"] | (s["hit"] & ~s["sure"]), state,
+                       _T_KEYS + ("sure",), max_steps=max_steps, steps="steps", lanes=lanes,
+                       settle=functools.partial(_settle_hits, verify))
+        # a lane that ran out of steps while holding a piece reports no hit
+        return _t_result(dict(out, hit=out["hit"] & out["sure"]))
 
     def run(st):
         out = run_rays(step, lambda s: s["going"], st, _T_KEYS, max_steps=max_steps,
@@ -310,5 +321,40 @@ def t_bisect_lanes(test, p, D, d_max, active, lanes: int | None, max_steps: int,
 
     check = None if verify is None else (
         lambda st: verify(p, D, *piece(st["k"], st["d"])))
-    state = dict(_t_start(d_max, active, d_start), p=p, D=D)
-    return _t_result(_verified_rounds(run, check, state, VERIFY_ROUNDS))
+    return _t_result(_verified_rounds(run, check, state))
+
+
+def _settle_hits(verify, st, live):
+    """Verify the pieces that lanes hold (accepted, not yet verified), gathered in chunks
+    of `_settle_width`: a verified piece is the lane's hit; a failed one moves the lane's
+    walk on to the next piece."""
+    n = live.shape[0]
+    width = _settle_width(n)
+
+    def chunk(carry):
+        st, todo = carry
+        lane = jnp.nonzero(todo, size=width, fill_value=n)[0]  # n: no lane
+        at = jnp.minimum(lane, n - 1)
+        k, d = st["k"][at], st["d"][at]
+        ok = verify(st["p"][at], st["D"][at], *piece(k, d))
+        no = jnp.zeros_like(ok)
+        k_next, d_next, end = advance(k, d, no, no, st["d0"][at])
+
+        def put(a, v):
+            return a.at[lane].set(v, mode="drop")
+
+        st = dict(st, sure=put(st["sure"], ok), hit=put(st["hit"], ok),
+                  k=put(st["k"], jnp.where(ok, k, k_next)),
+                  d=put(st["d"], jnp.where(ok, d, d_next)), going=put(st["going"], ~ok & ~end))
+        return st, put(todo, no)
+
+    held = live & st["hit"] & ~st["sure"]
+    return lax.while_loop(lambda c: jnp.any(c[1]), chunk, (st, held))[0]
+
+
+def _settle_width(lanes: int) -> int:
+    """Held pieces verified together (one chunk) on `lanes` lanes: an eighth of them, at
+    least 32. A lane holds at the end of its walk, ~1 in 50 steps on the networks, so a
+    refill of 4 steps usually needs one chunk; a loose enclosure near the surface (bunny)
+    fails pieces by the thousand, and more chunks run."""
+    return min(lanes, max(32, lanes // 8))
