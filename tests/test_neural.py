@@ -159,6 +159,36 @@ def test_verify_policies():
     assert not found[dist > 2.0**-7].any() and not line["none"][dist > 2.0**-7].any()
 
 
+def _tube(x, y, z):
+    """A regular surface: the cylinder of radius 0.2 about `_line`'s axis."""
+    return (x - 0.1) ** 2 + (y + 0.05) ** 2 - 0.04
+
+
+def test_default_verify_does_not_widen_silhouettes():
+    """Rays passing the tube 1e-5 to 0.1 outside it graze a regular surface: no hit with
+    the default, though the nearest lie far within a piece's length (2^-9) of it at first
+    order (the touching test before the singular condition took those for hits). Rays
+    1e-4 to 0.1 inside cross it: hit under every policy."""
+    box = dict(lo=(-1.0,) * 3, hi=(1.0,) * 3, eps=2.0**-9, arithmetic="interval")
+    rays, dist = _rays_past_the_line()
+    outside = np.arange(len(dist)) < len(dist) // 2  # the rays of positive offset
+    delta = np.where(outside, dist, -dist)
+    offset = np.where(outside, 0.2 + dist, -(0.2 - dist))  # from the axis, as delta
+    n = np.asarray([1.0, -1.0, 0.0]) / np.sqrt(2.0)
+    o = np.asarray(rays.origin) + (offset - delta)[:, None] * n
+    rays = ji.Rays(jnp.asarray(o, jnp.float32), rays.direction)
+    hits = {v: np.asarray(ji.intersect(ji.ImplicitSurface(_tube, verify=v, **box), rays).hit)
+            for v in ("sign", "sign+distance")}
+    assert not hits["sign+distance"][outside].any()
+    crossing = ~outside & (dist >= 1e-4)
+    assert crossing.sum() >= 15
+    assert hits["sign"][crossing].all() and hits["sign+distance"][crossing].all()
+    # the enclosure alone does take the nearest grazes: the test is the verification's
+    near = outside & (dist < 2.0**-12)
+    none = ji.ImplicitSurface(_tube, verify="none", **box)
+    assert np.asarray(ji.intersect(none, rays).hit)[near].all()
+
+
 def test_verify_is_validated():
     with pytest.raises(ValueError, match="verify"):
         ji.ImplicitSurface(_line, (-1,) * 3, (1,) * 3, verify="maybe")

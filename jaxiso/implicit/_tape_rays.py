@@ -43,7 +43,7 @@ from ..arith._affine_type import Affine
 from ..arith._interval import Interval
 from ..arith._tape import Tape
 from ._bisect import depth_for, piece_width
-from ._field import ray_boxes, ray_segments
+from ._field import ray_boxes, ray_segments, touches
 from .program import _chunked_eval, _histogram, _survivors
 
 __all__ = ["intersect_rays", "ROOT_GROUP", "ROOT_SLABS"]
@@ -194,28 +194,32 @@ def _final(tapes, reg, seg, rest, iso, policy, n_rays):
         q = pr + s[:, None] * Dr
         return [c[:, None] for c in (q[:, 0], q[:, 1], q[:, 2])]
 
+    def value_grad(x, y, z):  # [n] each -> [n], [n, 3] (forward mode through the tapes)
+        x, y, z = x[:, None], y[:, None], z[:, None]
+        one, zero = jnp.ones_like(x), jnp.zeros_like(x)
+        grads = []
+        for e in range(3):
+            tangent = [one if c == e else zero for c in range(3)]
+            v, d = jax.jvp(lambda x, y, z: _point_eval(tapes, x, y, z, rest),
+                           (x, y, z), tuple(tangent))
+            grads.append(d[:, 0])
+        return v[:, 0], jnp.stack(grads, axis=-1)
+
     sm = 0.5 * (s0 + s1)
-    xm, ym, zm = at(sm)
-    one = jnp.ones_like(xm)
-    zero = jnp.zeros_like(xm)
-    grads = []
-    for e in range(3):
-        tangent = [one if c == e else zero for c in range(3)]
-        fm, d = jax.jvp(lambda x, y, z: _point_eval(tapes, x, y, z, rest),
-                        (xm, ym, zm), tuple(tangent))
-        grads.append(d[:, 0])
-    fm = fm[:, 0]
-    grad = jnp.stack(grads, axis=-1)
+    fm, grad = value_grad(*(c[:, 0] for c in at(sm)))
     ok = valid
     if policy != "none":
         fa = _point_eval(tapes, *at(s0), rest)[:, 0]
         fb = _point_eval(tapes, *at(s1), rest)[:, 0]
         sign = jnp.any((fa[:, None] - iso) * (fb[:, None] - iso) <= 0, axis=-1)
         if policy == "sign+distance":
+            gap = fm - iso[jnp.argmin(jnp.abs(fm[:, None] - iso), axis=-1)]
+            m = pr + sm[:, None] * Dr
+            slope2 = jnp.sum(grad * grad, axis=-1)
+            foot = m - (gap / jnp.where(slope2 > 0, slope2, 1.0))[:, None] * grad
+            _, grad_foot = value_grad(foot[:, 0], foot[:, 1], foot[:, 2])
             length = (s1 - s0) * jnp.linalg.norm(Dr, axis=-1)
-            near = jnp.abs(fm[:, None] - iso) <= (length * jnp.linalg.norm(grad, axis=-1)
-                                                  )[:, None]
-            sign = sign | jnp.any(near, axis=-1)
+            sign = sign | touches(gap, grad, grad_foot, length)
         ok = ok & sign
     ray = jnp.where(ok, g, n_rays)
     best = jnp.full(n_rays, jnp.inf, jnp.float32).at[ray].min(sm, mode="drop")
