@@ -67,6 +67,28 @@ def test_elu_affine_small_ranges_sound_and_exact_where_positive():
                     float(np.float32(c)), float(np.float32(r)), 0.0)
 
 
+def test_elu_affine_random_forms_sound_to_an_ulp():
+    """20,000 random forms (centres around -3, radii 1e-8 .. 3, a tenth of them points,
+    error terms up to 0.3 of the radius): the elu rule's enclosure holds float64 elu at 65
+    points of each range up to one ulp of the values' magnitude. Its pads (3 ulps of the
+    magnitudes, 3 eps absolute) are what keeps it so: without them it misses by up to
+    ~2,600 ulps."""
+    rng = np.random.default_rng(0)
+    n = 20000
+    c = rng.normal(-3.0, 4.0, n).astype(np.float32)
+    r = (10.0 ** rng.uniform(-8.0, 0.5, n)).astype(np.float32)
+    r[: n // 10] = 0.0
+    err = (rng.uniform(0.0, 0.3, n) * r).astype(np.float32)
+    F = jax.jit(extend(jax.nn.elu, "affine", n_symbols=1))
+    iv = aa.to_interval(F(Affine(jnp.asarray(c), jnp.asarray(r)[:, None], jnp.asarray(err))))
+    half = r.astype(np.float64) + err
+    xs = c[:, None] + half[:, None] * np.linspace(-1.0, 1.0, 65)
+    v = _np_elu(xs, 1.0)
+    ulp = np.float64(np.finfo(np.float32).eps) * np.maximum(np.abs(v).max(axis=1), 1e-30)
+    assert np.all(np.asarray(iv.lo, np.float64) <= v.min(axis=1) + ulp)
+    assert np.all(np.asarray(iv.hi, np.float64) >= v.max(axis=1) - ulp)
+
+
 def test_relu_of_an_off_neuron_drops_its_error():
     """max(x, 0) on a form surely below 0 is exactly 0, error term included (AF1 kept the
     error of every off neuron, so a network's enclosure never shrank)."""

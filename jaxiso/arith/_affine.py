@@ -180,13 +180,14 @@ def _linearized(x: Affine, alpha, d_lo, d_hi, fallback_iv: Interval, defined) ->
 _LIN_ULPS = 8.0
 
 
-def _pad(delta_terms, dtype):
+def _pad(delta_terms, dtype, ulps=None):
     eps = float(jnp.finfo(dtype).eps)
-    return _LIN_ULPS * eps * delta_terms + float(jnp.finfo(dtype).tiny)
+    ulps = _LIN_ULPS if ulps is None else ulps
+    return ulps * eps * delta_terms + float(jnp.finfo(dtype).tiny)
 
 
 def _chebyshev(x: Affine, g, dg, dg_inv, convex, iv: Interval, fallback_iv: Interval,
-               g_dg=None, abs_pad=0.0):
+               g_dg=None, abs_pad=0.0, ulps=None):
     """Chebyshev linearisation of a convex (or concave, ``convex=False``) function on the
     range `iv` of `x` (already restricted to the domain).
 
@@ -197,6 +198,8 @@ def _chebyshev(x: Affine, g, dg, dg_inv, convex, iv: Interval, fallback_iv: Inte
     `g_dg` (optional): ``v -> (g(v), dg(v))`` from one transcendental (its absolute
     rounding bounded by `abs_pad`); a point range then takes slope 0 (its tangent term
     is 0 whatever the slope), so no derivative is evaluated at the range's end.
+    `ulps` (default `_LIN_ULPS`): the relative pad of the error bounds, for a rule that
+    bounds its own rounding.
     """
     a, b = iv.lo, iv.hi
     s = jnp.where(convex, 1.0, -1.0)
@@ -212,7 +215,7 @@ def _chebyshev(x: Affine, g, dg, dg_inv, convex, iv: Interval, fallback_iv: Inte
     d_hi = jnp.maximum(h_a, h_b)
     d_lo = (s * g_xi - beta * xi) + jnp.minimum(ia._times(hp, a - xi), ia._times(hp, b - xi))
     pad = _pad(jnp.abs(ga) + jnp.abs(gb) + jnp.abs(beta) * (jnp.abs(a) + jnp.abs(b)),
-               a.dtype) + abs_pad
+               a.dtype, ulps) + abs_pad
     d_lo, d_hi = d_lo - pad, d_hi + pad
     # back from s*g to g: alpha = s*beta, interval s*[d_lo, d_hi]
     lo_g = jnp.where(convex, d_lo, -d_hi)

@@ -261,10 +261,18 @@ def elu_affine(x, *rest, body):
         e = jnp.exp(jnp.minimum(v, 0.0))
         return jnp.where(v > 0, v, alpha * (e - 1.0)), jnp.where(v > 0, 1.0, alpha * e)
 
+    # Rounding of the error bounds (eps = ulp(1)). g's values are off by at most ~2 eps
+    # alpha absolute: exp(v) by ~|v| ulps of e^v (XLA's argument reduction) plus 1, at
+    # most ~eps over v <= 0; e - 1 and the scaling by alpha by half an ulp each. abs_pad
+    # is 3 eps alpha. The intercepts g - beta v and the tangent term round each product
+    # and sum once, at most eps of the magnitudes together: 3 ulps of them (not the
+    # generic 8). Summed through the next layer's weights, the pads of saturated neurons
+    # were the floor of bunny's enclosure on small pieces (0.0095 wide at a point, now
+    # 0.005): its verification failed thousands of pieces (benchmarks/NOTES.md).
     iv = aa._range(x)
     eps = float(jnp.finfo(iv.lo.dtype).eps)
     out = aa._chebyshev(x, g, dg, dg_inv, True, iv, ia.monotone_increasing(g)(iv),
-                        g_dg=g_dg, abs_pad=4.0 * eps * alpha)
+                        g_dg=g_dg, abs_pad=3.0 * eps * alpha, ulps=3.0)
     # on a range >= 0 elu is x itself: exact, no rounding pad (the pads of neurons that
     # are surely on were the floor of a network's enclosure width on small pieces)
     return aa._select(iv.lo >= 0, x, out)
