@@ -211,6 +211,31 @@ def test_default_verify_does_not_widen_silhouettes():
     assert np.asarray(ji.intersect(none, rays).hit)[near].all()
 
 
+def test_touching_test_tells_double_zeros_from_simple_ones():
+    """`_field.touches` at points 1e-3 .. 3e-3 from each zero set, within the length
+    (0.01): a double zero (g = r^2, a whisker) touches; a plane does not; nor does a
+    kinked plane whose slope halves 1e-3 before its zero (g = x, 2x - 1e-3 beyond x = 1e-3:
+    the first Newton step halves the gradient as at a touch, like a ReLU network's region
+    boundary, and the second lands on the zero: quadratic convergence, a simple zero)."""
+    from jaxiso.implicit._field import touches
+
+    def check(g, points):
+        def value_grad(q):
+            v, d = jax.vmap(jax.value_and_grad(lambda p: g(p[0], p[1], p[2])))(q)
+            return v, d
+        m = jnp.asarray(points, jnp.float32)
+        v, d = value_grad(m)
+        return np.asarray(touches(value_grad, m, v, d, jnp.zeros_like(v),
+                                  jnp.full_like(v, 0.01)))
+
+    r = np.asarray([1e-3, 2e-3, 3e-3])
+    zero = np.zeros(3)
+    assert check(lambda x, y, z: x * x + y * y, np.stack([0.6 * r, 0.8 * r, zero], -1)).all()
+    assert not check(lambda x, y, z: x, np.stack([r, zero, zero], -1)).any()
+    kinked = lambda x, y, z: jnp.where(x > 1e-3, 2 * x - 1e-3, x)  # noqa: E731
+    assert not check(kinked, np.stack([1e-3 + r, zero, zero], -1)).any()
+
+
 def test_verify_is_validated():
     with pytest.raises(ValueError, match="verify"):
         ji.ImplicitSurface(_line, (-1,) * 3, (1,) * 3, verify="maybe")

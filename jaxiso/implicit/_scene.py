@@ -188,9 +188,10 @@ class ImplicitSurface(_ImplicitOptions):
       verify: when a piece counts as a hit (t- and K-bisection). "sign+distance"
         (default): f - iso changes sign between the piece's ends, or the piece's midpoint
         is within the piece's length of the level set at first order (|f - iso| <=
-        length |grad f|) where the level set is singular (`_field.touches`), which keeps
-        surfaces that touch a level without crossing it (Steiner's whiskers, the
-        teardrop's cusp) and leaves rays that graze a regular surface; "sign": a sign
+        length |grad f|) where the level set is singular (`_field.touches`: Newton
+        converges linearly there, as to a double zero), which keeps surfaces that touch
+        a level without crossing it (Steiner's whiskers, the teardrop's cusp) and leaves
+        rays that graze a regular surface; "sign": a sign
         change only (a root is proven; touching surfaces are missed); "none": the
         enclosure alone, the seed's rule (a loose enclosure, e.g. of a deep network,
         becomes a false hit).

@@ -214,15 +214,12 @@ def _final(tapes, reg, seg, rest, iso, policy, n_rays):
         sign = jnp.any((fa[:, None] - iso) * (fb[:, None] - iso) <= 0, axis=-1)
         if policy == "sign+distance":
             def touching():
-                gap = fm - iso[jnp.argmin(jnp.abs(fm[:, None] - iso), axis=-1)]
-                m = pr + sm[:, None] * Dr
-                slope2 = jnp.sum(grad * grad, axis=-1)
-                foot = m - (gap / jnp.where(slope2 > 0, slope2, 1.0))[:, None] * grad
-                _, grad_foot = value_grad(foot[:, 0], foot[:, 1], foot[:, 2])
+                level = iso[jnp.argmin(jnp.abs(fm[:, None] - iso), axis=-1)]
                 length = (s1 - s0) * jnp.linalg.norm(Dr, axis=-1)
-                return touches(gap, grad, grad_foot, length)
+                return touches(lambda q: value_grad(q[:, 0], q[:, 1], q[:, 2]),
+                               pr + sm[:, None] * Dr, fm, grad, level, length)
 
-            # the foot point's gradient costs three passes of the tapes: only when needed
+            # the foot points' gradients cost six passes of the tapes: only when needed
             sign = sign | jax.lax.cond(jnp.any(valid & ~sign), touching,
                                        lambda: jnp.zeros_like(sign))
         ok = ok & sign
