@@ -223,7 +223,7 @@ def root_check(g, w, params, isovalues, policy: str):
         ok = jnp.any(f0 * f1 <= 0, axis=-1)  # NaN compares False: no root there
         if policy == "sign":
             return ok
-        # the touching test costs two gradients per piece: only when a piece needs it
+        # the touching test costs three gradients per piece: only when a piece needs it
         return ok | jax.lax.cond(jnp.any(~ok), touching, lambda *_: jnp.zeros_like(ok),
                                  p, D, s0, s1)
 

@@ -191,10 +191,9 @@ class ImplicitSurface(_ImplicitOptions):
         length |grad f|) where the level set is singular (`_field.touches`: Newton
         converges linearly there, as to a double zero), which keeps surfaces that touch
         a level without crossing it (Steiner's whiskers, the teardrop's cusp) and leaves
-        rays that graze a regular surface; "sign": a sign
-        change only (a root is proven; touching surfaces are missed); "none": the
-        enclosure alone, the seed's rule (a loose enclosure, e.g. of a deep network,
-        becomes a false hit).
+        rays that graze a regular surface; "sign": a sign change only (a root is proven;
+        touching surfaces are missed); "none": the enclosure alone, the seed's rule (a
+        loose enclosure, e.g. of a deep network, becomes a false hit).
     """
 
     f: Callable = static_field()
