@@ -233,6 +233,26 @@ def test_verified_walks_go_past_hundreds_of_failed_pieces(d_start):
         _assert_same(run(p, D, d_max, active), ref, path)
 
 
+def test_verified_walks_stop_at_max_steps():
+    """An enclosure that holds a root everywhere and a verification that never passes
+    (a loose network far from its surface): 2^20 pieces would each be accepted and fail,
+    so every path stops each ray at max_steps with no hit, as the stack reference does."""
+    p, D, d_max, active = _oracle_rays()
+    d_max = np.full_like(d_max, 20)
+    D[:, 2] = 2.0
+    max_steps = 300
+
+    def never(p, D, s0, s1):
+        return jnp.zeros(jnp.shape(s0), bool)
+
+    ref = stack_bisect(lambda s0, s1: _floored_oracle(p, D, s0, s1), d_max, active,
+                       max_steps, verify=lambda s0, s1: np.zeros(len(s0), bool))
+    rooted = active & np.isfinite(p[:, 0])  # (rootless rays are excluded at once)
+    assert not ref[1].any() and (ref[2][rooted] == max_steps).all() and rooted.sum() > 100
+    for path, run in _kernels(_floored_oracle, max_steps, lanes=32, verify=never).items():
+        _assert_same(run(p, D, d_max, active), ref, path)
+
+
 def test_start_depth_is_the_first_depth_excluding_half_the_pieces():
     """A test that excludes a piece only when it is at most 2^-5 long and holds no root
     (`_oracle` otherwise): from depth 5 on nearly every piece of a rootless ray and most

@@ -106,16 +106,19 @@ def _t_start(d_max, active, d_start=0):
                 hit=jnp.zeros_like(active), steps=zeros)
 
 
-def _t_step(test, st):
-    """One t-bisection step of every going ray (elementwise); rays not going come back
-    unchanged. An accepted ray stops on (k, d) of its hit piece."""
+def _t_step(test, st, max_steps=None):
+    """One t-bisection step of every going ray (elementwise) with steps left (below
+    max_steps, None: not checked); other rays come back unchanged. An accepted ray stops
+    on (k, d) of its hit piece."""
     k, d, go = st["k"], st["d"], st["going"]
+    if max_steps is not None:
+        go = go & (st["steps"] < max_steps)
     r = test(*piece(k, d))
     accept = r.possible & r.finite & ((d >= st["dmax"]) | r.small)
     descend = r.possible & ~accept & (d < st["dmax"])
     k_new, d_new, finished = advance(k, d, accept, descend, st["d0"])
     return dict(st, k=jnp.where(go, k_new, k), d=jnp.where(go, d_new, d),
-                going=go & ~finished, hit=st["hit"] | (go & accept),
+                going=st["going"] & ~(go & finished), hit=st["hit"] | (go & accept),
                 steps=st["steps"] + go.astype(jnp.int32))
 
 
@@ -124,11 +127,19 @@ def _t_result(out) -> Result:
     return Result(jnp.where(out["hit"], s, jnp.inf), out["hit"], out["steps"])
 
 
-def _verified_rounds(run, verify, state):
-    """Run the walk (`run`: state -> state), then check each ray's accepted piece with
-    `verify` (state -> bool, True: a root is established there); a ray whose piece fails
-    moves on to the next piece and walks again, until no ray does. Every walk costs each
-    ray it moves at least a step, so max_steps bounds the rounds."""
+def _walking(max_steps: int):
+    """busy for `run_rays`: the ray walks and has steps left (a walk after a failed
+    verification starts with the steps of the walks before it)."""
+    return lambda st: st["going"] & (st["steps"] < max_steps)
+
+
+def _verified_rounds(run, verify, state, max_steps: int):
+    """Run the walk (`run`: state -> state, which steps a going ray only while its step
+    count is below max_steps), then check each ray's accepted piece with `verify` (state
+    -> bool, True: a root is established there); a ray whose piece fails moves on to the
+    next piece and walks again, until no ray does or its steps reach max_steps (then it
+    reports no hit). Every walk costs each ray it moves at least a step, so max_steps
+    bounds the rounds."""
     if verify is None:
         return run(state)
 
@@ -140,7 +151,7 @@ def _verified_rounds(run, verify, state):
         k_next, d_next, end = advance(out["k"], out["d"], no, no, out["d0"])
         return r + 1, dict(out, k=jnp.where(bad, k_next, out["k"]),
                            d=jnp.where(bad, d_next, out["d"]), hit=out["hit"] & ~bad,
-                           going=bad & ~end)
+                           going=bad & ~end & (out["steps"] < max_steps))
 
     def cond(carry):
         r, st = carry
@@ -164,11 +175,12 @@ def t_bisect(test, d_max, active, max_steps: int, verify=None) -> Result:
         verify establishes a root in it; otherwise the walk goes on past it.
     """
     def run(st):
-        return run_rays(functools.partial(_t_step, test), lambda s: s["going"], st, _T_KEYS,
+        return run_rays(functools.partial(_t_step, test, max_steps=max_steps),
+                        _walking(max_steps), st, _T_KEYS,
                         max_steps=max_steps, steps="steps")
 
     check = None if verify is None else (lambda st: verify(*piece(st["k"], st["d"])))
-    return _t_result(_verified_rounds(run, check, _t_start(d_max, active)))
+    return _t_result(_verified_rounds(run, check, _t_start(d_max, active), max_steps))
 
 
 def k_bisect(test, k_enter, k_exit, d_max, active, max_steps: int, verify=None) -> Result:
@@ -302,7 +314,7 @@ def t_bisect_lanes(test, p, D, d_max, active, lanes: int | None, max_steps: int,
         above it are not tested.
     """
     def step(st):
-        return _t_step(lambda s0, s1: test(st["p"], st["D"], s0, s1), st)
+        return _t_step(lambda s0, s1: test(st["p"], st["D"], s0, s1), st, max_steps)
 
     state = dict(_t_start(d_max, active, d_start), p=p, D=D)
     if lanes is not None and verify is not None:
@@ -315,13 +327,13 @@ def t_bisect_lanes(test, p, D, d_max, active, lanes: int | None, max_steps: int,
         return _t_result(dict(out, hit=out["hit"] & out["sure"]))
 
     def run(st):
-        out = run_rays(step, lambda s: s["going"], st, _T_KEYS, max_steps=max_steps,
+        out = run_rays(step, _walking(max_steps), st, _T_KEYS, max_steps=max_steps,
                        steps="steps", lanes=lanes)
         return dict(out, p=p, D=D)
 
     check = None if verify is None else (
         lambda st: verify(p, D, *piece(st["k"], st["d"])))
-    return _t_result(_verified_rounds(run, check, state))
+    return _t_result(_verified_rounds(run, check, state, max_steps))
 
 
 def _settle_hits(verify, st, live):
