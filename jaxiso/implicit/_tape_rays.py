@@ -183,46 +183,61 @@ def _point_eval(tapes, x, y, z, rest):
     return _chunked_eval(tapes, [x, y, z, *rest], False, _BUDGET, _CHUNKS)
 
 
-@functools.partial(jax.jit, static_argnames=("policy", "n_rays"))
-def _final(tapes, reg, seg, rest, iso, policy, n_rays):
-    """Verify every final piece, keep each ray's nearest: (s, value, gradient) per ray."""
-    _, _, inside, p, D, _ = seg
-    g, s0, s1, valid = reg["g"], reg["s0"], reg["s1"], reg["valid"]
-    pr, Dr = p[g], D[g]
+def _piece_lines(seg, reg):
+    """Each final piece's ray line: points p [n, 3] and directions D [n, 3] (s in [0, 1]
+    spans the ray's segment)."""
+    _, _, _, p, D, _ = seg
+    return p[reg["g"]], D[reg["g"]]
 
-    def at(s):
-        q = pr + s[:, None] * Dr
-        return [c[:, None] for c in (q[:, 0], q[:, 1], q[:, 2])]
 
-    def value_grad(x, y, z):  # [n] each -> [n], [n, 3] (forward mode through the tapes)
-        x, y, z = x[:, None], y[:, None], z[:, None]
-        one, zero = jnp.ones_like(x), jnp.zeros_like(x)
-        grads = []
-        for e in range(3):
-            tangent = [one if c == e else zero for c in range(3)]
-            v, d = jax.jvp(lambda x, y, z: _point_eval(tapes, x, y, z, rest),
-                           (x, y, z), tuple(tangent))
-            grads.append(d[:, 0])
-        return v[:, 0], jnp.stack(grads, axis=-1)
+def _value_grad(tapes, rest, q):
+    """The tapes' values [n] and gradients [n, 3] at points q [n, 3] (forward mode)."""
+    x, y, z = (q[:, c, None] for c in range(3))
+    one, zero = jnp.ones_like(x), jnp.zeros_like(x)
+    grads = []
+    for e in range(3):
+        tangent = [one if c == e else zero for c in range(3)]
+        v, d = jax.jvp(lambda x, y, z: _point_eval(tapes, x, y, z, rest),
+                       (x, y, z), tuple(tangent))
+        grads.append(d[:, 0])
+    return v[:, 0], jnp.stack(grads, axis=-1)
 
-    sm = 0.5 * (s0 + s1)
-    fm, grad = value_grad(*(c[:, 0] for c in at(sm)))
-    ok = valid
-    if policy != "none":
-        fa = _point_eval(tapes, *at(s0), rest)[:, 0]
-        fb = _point_eval(tapes, *at(s1), rest)[:, 0]
-        sign = jnp.any((fa[:, None] - iso) * (fb[:, None] - iso) <= 0, axis=-1)
-        if policy == "sign+distance":
-            def touching():
-                level = iso[jnp.argmin(jnp.abs(fm[:, None] - iso), axis=-1)]
-                length = (s1 - s0) * jnp.linalg.norm(Dr, axis=-1)
-                return touches(lambda q: value_grad(q[:, 0], q[:, 1], q[:, 2]),
-                               pr + sm[:, None] * Dr, fm, grad, level, length)
 
-            # the foot points' gradients cost six passes of the tapes: only when needed
-            sign = sign | jax.lax.cond(jnp.any(valid & ~sign), touching,
-                                       lambda: jnp.zeros_like(sign))
-        ok = ok & sign
+@functools.partial(jax.jit, static_argnames=("policy",))
+def _final_checks(tapes, reg, seg, rest, iso, policy):
+    """Every final piece's midpoint value fm [n] and gradient [n, 3], and ok [n]: a valid
+    piece whose root is established by the sign test (every valid piece for policy
+    "none")."""
+    pr, Dr = _piece_lines(seg, reg)
+    s0, s1, valid = reg["s0"], reg["s1"], reg["valid"]
+    fm, grad = _value_grad(tapes, rest, pr + (0.5 * (s0 + s1))[:, None] * Dr)
+    if policy == "none":
+        return fm, grad, valid
+    fa, fb = (_point_eval(tapes, *(c[:, None] for c in (pr + s[:, None] * Dr).T), rest)[:, 0]
+              for s in (s0, s1))
+    sign = jnp.any((fa[:, None] - iso) * (fb[:, None] - iso) <= 0, axis=-1)
+    return fm, grad, valid & sign
+
+
+@jax.jit
+def _final_touching(tapes, reg, seg, rest, iso, fm, grad):
+    """The touching test of "sign+distance" on every final piece ([n] bool). A call of
+    its own, made only when some valid piece fails the sign test: the Newton steps' foot
+    points cost six more forward passes of the tapes."""
+    pr, Dr = _piece_lines(seg, reg)
+    s0, s1 = reg["s0"], reg["s1"]
+    level = iso[jnp.argmin(jnp.abs(fm[:, None] - iso), axis=-1)]
+    length = (s1 - s0) * jnp.linalg.norm(Dr, axis=-1)
+    middle = pr + (0.5 * (s0 + s1))[:, None] * Dr
+    return reg["valid"] & touches(lambda q: _value_grad(tapes, rest, q), middle, fm, grad,
+                                  level, length)
+
+
+@functools.partial(jax.jit, static_argnames=("n_rays",))
+def _nearest(reg, ok, fm, grad, n_rays):
+    """Each ray's nearest verified piece: (s, value, gradient) per ray [n_rays]."""
+    g = reg["g"]
+    sm = 0.5 * (reg["s0"] + reg["s1"])
     ray = jnp.where(ok, g, n_rays)
     best = jnp.full(n_rays, jnp.inf, jnp.float32).at[ray].min(sm, mode="drop")
     win = ok & (sm == best[jnp.minimum(g, n_rays - 1)])
@@ -230,6 +245,14 @@ def _final(tapes, reg, seg, rest, iso, policy, n_rays):
     value = jnp.zeros(n_rays, jnp.float32).at[ray].set(fm, mode="drop")
     gradient = jnp.zeros((n_rays, 3), jnp.float32).at[ray].set(grad, mode="drop")
     return best, value, gradient
+
+
+def _final(tapes, reg, seg, rest, iso, policy, n_rays):
+    """Verify every final piece (host-side driver), keep each ray's nearest."""
+    fm, grad, ok = _final_checks(tapes, reg, seg, rest, iso, policy)
+    if policy == "sign+distance" and bool(jnp.any(reg["valid"] & ~ok)):
+        ok = ok | _final_touching(tapes, reg, seg, rest, iso, fm, grad)
+    return _nearest(reg, ok, fm, grad, n_rays)
 
 
 @jax.jit
