@@ -199,7 +199,7 @@ done
 XDIST=()
 if [ "$WORKERS" != "0" ]; then
     if has xdist; then
-        XDIST=(-n "$WORKERS" --dist loadfile)
+        XDIST=(-n "$WORKERS" --dist loadfile --max-worker-restart=0)
     else
         echo "pytest-xdist missing: tests run in one process" | tee -a "$LOG"
     fi
