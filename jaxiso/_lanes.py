@@ -39,15 +39,15 @@ def _select(mask, new, old):
 
 
 def run_rays(step, busy, state, results, *, max_steps: int, steps: str, lanes=None,
-             settle=None):
+             settle=None, min_width: int = 32):
     """Iterate per-ray `state` (leaves [P, ...]) until no ray is busy.
 
     step: state -> state (rays not busy must come back unchanged); busy: state -> [P]
     bool; results: the state keys to return; steps: the key of the per-ray iteration
     counter, which bounds each ray at `max_steps`. lanes None: one `while_loop` over the
     packet (until its slowest ray is done); an int: persistent lanes with refill. Both
-    give the same per-ray results. settle (lanes only): ``(state, live) -> state`` (see
-    `run_lanes`). Returns {key: [P, ...]} for `results`.
+    give the same per-ray results. settle, min_width (lanes only): see `run_lanes`.
+    Returns {key: [P, ...]} for `results`.
     """
     if lanes is None:
         def cond(c):
@@ -71,7 +71,7 @@ def run_rays(step, busy, state, results, *, max_steps: int, steps: str, lanes=No
 
     return run_lanes(step, lambda s: ~busy(s) | (s[steps] >= max_steps), queue,
                      jnp.sum(going).astype(jnp.int32), {k: state[k] for k in results}, write,
-                     lanes=min(int(lanes), going.shape[0]), settle=settle)
+                     lanes=min(int(lanes), going.shape[0]), settle=settle, min_width=min_width)
 
 
 def run_lanes(step, done, queue, n_queue, results, write, *, lanes: int,
@@ -89,7 +89,8 @@ def run_lanes(step, done, queue, n_queue, results, write, *, lanes: int,
       results: pytree of outputs, leaves [N, ...].
       write: (results, state, target) -> results, where target [L] int32 is the output row
         of each finished lane and N elsewhere (scatter with mode="drop").
-      lanes: static width of the first phase.
+      lanes: static width of the first phase; min_width: of the last (each phase compiles
+        `step` and `settle` again).
       settle: None or ``(state, live) -> state``, run on all lanes ([L, ...] leaves; live
         [L] bool: the lane holds a queued ray) after every `refill_every` steps, before
         finished lanes are written.

@@ -291,7 +291,7 @@ def start_depth(test, p, D, d_max, active):
 
 
 def t_bisect_lanes(test, p, D, d_max, active, lanes: int | None, max_steps: int,
-                   verify=None, d_start=0) -> Result:
+                   verify=None, d_start=0, min_width: int = 32) -> Result:
     """t-bisection of a batch of rays [N] on `lanes` persistent lanes with refill
     (`jaxiso._lanes.run_rays`; rays that miss the domain never enter the queue), or, with
     lanes None, one loop over the batch. Same per-ray step and results as `t_bisect`.
@@ -312,6 +312,7 @@ def t_bisect_lanes(test, p, D, d_max, active, lanes: int | None, max_steps: int,
         accepted pieces only.
       d_start: int32 [] or [N], the depth the walks start at (`start_depth`); pieces
         above it are not tested.
+      min_width: static width of the narrowest lane phase (`jaxiso._lanes.run_lanes`).
     """
     def step(st):
         return _t_step(lambda s0, s1: test(st["p"], st["D"], s0, s1), st, max_steps)
@@ -322,13 +323,13 @@ def t_bisect_lanes(test, p, D, d_max, active, lanes: int | None, max_steps: int,
         state["sure"] = jnp.zeros_like(state["hit"])
         out = run_rays(step, lambda s: s["going"] | (s["hit"] & ~s["sure"]), state,
                        _T_KEYS + ("sure",), max_steps=max_steps, steps="steps", lanes=lanes,
-                       settle=functools.partial(_settle_hits, verify))
+                       settle=functools.partial(_settle_hits, verify), min_width=min_width)
         # a lane that ran out of steps while holding a piece reports no hit
         return _t_result(dict(out, hit=out["hit"] & out["sure"]))
 
     def run(st):
         out = run_rays(step, _walking(max_steps), st, _T_KEYS, max_steps=max_steps,
-                       steps="steps", lanes=lanes)
+                       steps="steps", lanes=lanes, min_width=min_width)
         return dict(out, p=p, D=D)
 
     check = None if verify is None else (

@@ -338,17 +338,20 @@ def _interval_method(F, scene, p, D, inside, lanes=None):
         return _bisect.BoxTest(possible, finite, (r.hi - r.lo) < tol)
 
     verify = root_check(scene.field, scene.w, scene.params, scene.isovalues, scene.verify)
-    pilot = lanes is not None and _is_heavy(scene.f, scene.field, scene.params)
+    heavy = lanes is not None and _is_heavy(scene.f, scene.field, scene.params)
     return run_bisection(scene.method, test, p, D, inside, scene.eps, scene.max_steps,
-                         lanes, verify, pilot)
+                         lanes, verify, heavy)
 
 
 def run_bisection(method, test, p, D, inside, eps, max_steps=None, lanes=None, verify=None,
-                  pilot=False):
+                  heavy=False):
     """Drive t- or K-bisection over a packet with a box test ``test(p, D, s0, s1)`` and
-    an optional root check ``verify(p, D, s0, s1)`` (`root_check`). `pilot`: walks on
-    lanes start at the depth `_bisect.start_depth` measures (for heavy functions: on the
-    catalogue's at 512^2 it gained nothing clear and cost 0.4-1.4 s of compile)."""
+    an optional root check ``verify(p, D, s0, s1)`` (`root_check`). `heavy` (a costly
+    function, e.g. a network) changes two things on lanes: the walks start at the depth
+    `_bisect.start_depth` measures (on the catalogue at 512^2 that gained nothing clear
+    and cost 0.4-1.4 s of compile), and the narrowest lane phase is 64 wide, not 32
+    (every phase compiles the walk again: on the networks at 128^2 the 32-lane phase cost
+    1.3-1.4 s of first call and saved 1-2% of the run)."""
     length = jnp.linalg.norm(D, axis=-1)
     d_max = _bisect.depth_for(length, eps)
     if max_steps is None:
@@ -356,9 +359,9 @@ def run_bisection(method, test, p, D, inside, eps, max_steps=None, lanes=None, v
         # packet visits the union of its rays' candidate pieces
         max_steps = 256 * _bisect.MAX_DEPTH * (8 if method == "k-bisection" else 1)
     if method == "t-bisection" and lanes is not None:
-        d_start = _bisect.start_depth(test, p, D, d_max, inside) if pilot else 0
+        d_start = _bisect.start_depth(test, p, D, d_max, inside) if heavy else 0
         return _bisect.t_bisect_lanes(test, p, D, d_max, inside, lanes, max_steps, verify,
-                                      d_start)
+                                      d_start, min_width=64 if heavy else 32)
     if method == "t-bisection":
         return _t_bisection(test, p, D, d_max, inside, max_steps, verify)
     if method == "k-bisection":
