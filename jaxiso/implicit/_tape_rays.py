@@ -190,17 +190,25 @@ def _piece_lines(seg, reg):
     return p[reg["g"]], D[reg["g"]]
 
 
+def _values(tapes, rest, q):
+    """The tapes' values [n, 1] at points q [n, 3]."""
+    return _point_eval(tapes, q[:, 0, None], q[:, 1, None], q[:, 2, None], rest)
+
+
 def _value_grad(tapes, rest, q):
     """The tapes' values [n] and gradients [n, 3] at points q [n, 3] (forward mode)."""
-    x, y, z = (q[:, c, None] for c in range(3))
-    one, zero = jnp.ones_like(x), jnp.zeros_like(x)
     grads = []
     for e in range(3):
-        tangent = [one if c == e else zero for c in range(3)]
-        v, d = jax.jvp(lambda x, y, z: _point_eval(tapes, x, y, z, rest),
-                       (x, y, z), tuple(tangent))
+        v, d = jax.jvp(lambda q: _values(tapes, rest, q), (q,),
+                       (jnp.zeros_like(q).at[:, e].set(1.0),))
         grads.append(d[:, 0])
     return v[:, 0], jnp.stack(grads, axis=-1)
+
+
+def _midpoints(seg, reg):
+    """Each final piece's midpoint [n, 3]."""
+    pr, Dr = _piece_lines(seg, reg)
+    return pr + (0.5 * (reg["s0"] + reg["s1"]))[:, None] * Dr
 
 
 @functools.partial(jax.jit, static_argnames=("policy",))
@@ -209,12 +217,11 @@ def _final_checks(tapes, reg, seg, rest, iso, policy):
     piece whose root is established by the sign test (every valid piece for policy
     "none")."""
     pr, Dr = _piece_lines(seg, reg)
-    s0, s1, valid = reg["s0"], reg["s1"], reg["valid"]
-    fm, grad = _value_grad(tapes, rest, pr + (0.5 * (s0 + s1))[:, None] * Dr)
+    valid = reg["valid"]
+    fm, grad = _value_grad(tapes, rest, _midpoints(seg, reg))
     if policy == "none":
         return fm, grad, valid
-    fa, fb = (_point_eval(tapes, *(c[:, None] for c in (pr + s[:, None] * Dr).T), rest)[:, 0]
-              for s in (s0, s1))
+    fa, fb = (_values(tapes, rest, pr + reg[s][:, None] * Dr)[:, 0] for s in ("s0", "s1"))
     sign = jnp.any((fa[:, None] - iso) * (fb[:, None] - iso) <= 0, axis=-1)
     return fm, grad, valid & sign
 
@@ -224,13 +231,11 @@ def _final_touching(tapes, reg, seg, rest, iso, fm, grad):
     """The touching test of "sign+distance" on every final piece ([n] bool). A call of
     its own, made only when some valid piece fails the sign test: the Newton steps' foot
     points cost six more forward passes of the tapes."""
-    pr, Dr = _piece_lines(seg, reg)
-    s0, s1 = reg["s0"], reg["s1"]
+    _, Dr = _piece_lines(seg, reg)
     level = iso[jnp.argmin(jnp.abs(fm[:, None] - iso), axis=-1)]
-    length = (s1 - s0) * jnp.linalg.norm(Dr, axis=-1)
-    middle = pr + (0.5 * (s0 + s1))[:, None] * Dr
-    return reg["valid"] & touches(lambda q: _value_grad(tapes, rest, q), middle, fm, grad,
-                                  level, length)
+    length = (reg["s1"] - reg["s0"]) * jnp.linalg.norm(Dr, axis=-1)
+    return reg["valid"] & touches(lambda q: _value_grad(tapes, rest, q),
+                                  _midpoints(seg, reg), fm, grad, level, length)
 
 
 @functools.partial(jax.jit, static_argnames=("n_rays",))
