@@ -61,6 +61,7 @@ import importlib
 import io
 import pathlib
 import sys
+import time
 import types
 import typing
 
@@ -124,7 +125,9 @@ def scene_options(S):
         if f.name in ("f", "params", "lo", "hi"):
             continue
         v = getattr(S, f.name)
-        if v is None or isinstance(v, str | bool | int | float):
+        if isinstance(v, ji.implicit.SignGrid):
+            out[f.name] = {"resolution": list(v.resolution)}
+        elif v is None or isinstance(v, str | bool | int | float):
             out[f.name] = v
         elif np.size(v) == 1:
             out[f.name] = float(np.asarray(v).reshape(()))
@@ -365,9 +368,12 @@ def measure(make, rays, pilot, budget, repeats, slow_s):
 
 def casters(net, cfg, spelunking):
     """(label, kind, description dict, make) for every caster run on a network."""
+    start = time.perf_counter()
     S = user_scene(net)
+    construct_s = time.perf_counter() - start
     lip = net.mlp.lipschitz
     jx = [("jaxiso default", S, "ji.intersect(S, rays)"),
+
           ("jaxiso interval", S.replace(arithmetic="interval"),
            "ji.intersect(S.replace(arithmetic='interval'), rays)"),
           ("jaxiso affine", S.replace(arithmetic="affine"),
@@ -376,6 +382,9 @@ def casters(net, cfg, spelunking):
           # silhouettes, which the sign-change reference counts as misses)
           ("jaxiso verify=sign", S.replace(verify="sign"),
            "ji.intersect(S.replace(verify='sign'), rays)"),
+          # the walk over the whole segment, without the sign grid
+          ("jaxiso culling=none", S.replace(culling="none"),
+           "ji.intersect(S.replace(culling='none'), rays)"),
           ("sphere L=net", S.replace(method="sphere", lipschitz=lip),
            "ji.intersect(S.replace(method='sphere', lipschitz=m.lipschitz), rays)")]
     if net.sdf:
@@ -385,8 +394,10 @@ def casters(net, cfg, spelunking):
     for label, scene, call in jx:
         unit = ("point evaluations" if scene.method in ("sphere", "sampling")
                 else "loop iterations (enclosures)")
-        out.append((label, "jaxiso", dict(call=call, scene=scene_options(scene),
-                                          steps_unit=unit), jaxiso_caster(scene), scene))
+        desc = dict(call=call, scene=scene_options(scene), steps_unit=unit)
+        if scene is S:  # the scene's construction: the arithmetic's measurement, the grid
+            desc["construct_s"] = construct_s
+        out.append((label, "jaxiso", desc, jaxiso_caster(scene), scene))
     trace = hand_sampling(net.mlp, cfg["hand_samples"], cfg["hand_bisections"])
     out.append((f"hand sampling {cfg['hand_samples']}", "hand",
                 dict(call=f"jax.jit: {cfg['hand_samples']} samples, first sign change, "

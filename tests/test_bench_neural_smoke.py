@@ -62,7 +62,7 @@ def test_tiny_run_writes_json(tmp_path):
     rows = result["rays"]["rows"]
     labels = [r["label"] for r in rows]
     assert labels == ["jaxiso default", "jaxiso interval", "jaxiso affine",
-                      "jaxiso verify=sign", "sphere L=net",
+                      "jaxiso verify=sign", "jaxiso culling=none", "sphere L=net",
                       "sphere L=1", "hand sampling 128"]  # the fox is an SDF: L=1 too
     for r in rows:
         assert "error" not in r, r
@@ -77,9 +77,12 @@ def test_tiny_run_writes_json(tmp_path):
     assert rows[1]["scene"]["arithmetic"] == "interval"
     assert rows[2]["scene"]["arithmetic"] == "affine"
     assert rows[3]["scene"]["verify"] == "sign"
-    assert rows[5]["scene"]["lipschitz"] == 1.0 and rows[4]["scene"]["lipschitz"] > 1.0
+    # the default builds a sign grid at construction (timed), culling="none" none
+    assert default["scene"]["sign_grid"]["resolution"][0] >= 4 and default["construct_s"] > 0
+    assert rows[4]["scene"]["culling"] == "none" and rows[4]["scene"]["sign_grid"] is None
+    assert rows[6]["scene"]["lipschitz"] == 1.0 and rows[5]["scene"]["lipschitz"] > 1.0
     # the accurate casters find the fox's few hits where the reference does
-    hand = rows[6]
+    hand = rows[7]
     assert hand["mask_agreement"] > 0.97 and hand["steps_mean"] == 136
     assert hand["depth_err_median"] < 1e-2
 

@@ -1,8 +1,10 @@
 """Arbitrary implicit surfaces (seed ch. 6): scenes, kernels and the surface catalogue."""
 
 from . import csg, surfaces
+from ._grid import SignGrid
 from ._scene import ImplicitSurface
 from .mlp import MLP, load_mlp
 from .vm import VMProgram, load_vm
 
-__all__ = ["surfaces", "ImplicitSurface", "csg", "load_vm", "VMProgram", "load_mlp", "MLP"]
+__all__ = ["surfaces", "ImplicitSurface", "csg", "load_vm", "VMProgram", "load_mlp", "MLP",
+           "SignGrid"]

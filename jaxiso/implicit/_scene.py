@@ -46,6 +46,7 @@ from ._field import (
     ray_segments,
     root_check,
 )
+from ._grid import SignGrid, build_sign_grid, segment_span, values_key
 from ._tape_rays import intersect_rays
 from .program import long_program_tape, tape_of
 
@@ -55,6 +56,7 @@ DEFAULT_EPS = 2.0**-11
 
 
 METHODS = ("t-bisection", "k-bisection", "mitchell", "sampling", "sphere")
+CULLINGS = ("auto", "grid", "none")
 ARITHMETICS = ("interval", "affine")
 ROUNDINGS = ("fast", "outward")
 
@@ -194,6 +196,15 @@ class ImplicitSurface(_ImplicitOptions):
         rays that graze a regular surface; "sign": a sign change only (a root is proven;
         touching surfaces are missed); "none": the enclosure alone, the seed's rule (a
         loose enclosure, e.g. of a deep network, becomes a false hit).
+      culling: "auto" (default), "grid" or "none". A sign grid (`_grid.SignGrid`:
+        enclosures of f on up to 64^3 cells of the box) is built at construction, and
+        each ray bisects only the part of its segment near cells that may hold an
+        isovalue. "auto" builds it for heavy functions (networks: `_is_heavy`) with
+        t- or K-bisection when f's inputs (params, w, box) are concrete, "grid" for any
+        such function. Changing f, params, w, lo, hi or rounding through `replace`
+        builds it again (eps, isovalues, ... keep it: it holds for every isovalue).
+        `culling_report` says what was built. Not used while delta > 0.
+      sign_grid: the grid (built by the scene; None: none).
     """
 
     f: Callable = static_field()
@@ -214,6 +225,9 @@ class ImplicitSurface(_ImplicitOptions):
     refine_steps: int | None = static_field(None)
     verify: str = static_field("sign+distance")
     arithmetic_report: str = static_field("")
+    culling: str = static_field("auto")
+    sign_grid: SignGrid | None = None
+    culling_report: str = static_field("")
 
     _methods = METHODS
     _arithmetics = ARITHMETICS + ("auto",)
@@ -235,6 +249,18 @@ class ImplicitSurface(_ImplicitOptions):
                                              self.params, self.rounding, self._long_tape())
             object.__setattr__(self, "arithmetic", pick)
             object.__setattr__(self, "arithmetic_report", report)
+        check_choice("culling", self.culling, CULLINGS)
+        if self.sign_grid is None:
+            grid, report = _sign_grid(self)
+            object.__setattr__(self, "sign_grid", grid)
+            object.__setattr__(self, "culling_report", report)
+
+    def replace(self, **changes):
+        """As `SceneFields.replace`; the sign grid is built again when a field it depends
+        on changes."""
+        if changes.keys() & _GRID_INPUTS and "sign_grid" not in changes:
+            changes = {**changes, "sign_grid": None}
+        return super().replace(**changes)
 
     @property
     def field(self):
@@ -300,6 +326,8 @@ class ImplicitSurface(_ImplicitOptions):
         _check_lanes(self.method, lanes)
         scene = jax.lax.stop_gradient(self)
         t0, t1, inside, p, D = ray_segments(rays, scene.lo, scene.hi, t_min, t_max)
+        if scene.sign_grid is not None:
+            t0, t1, inside, p, D = _near_possible_cells(scene, t0, t1, inside, p, D)
         g = scene.field
         if self.method in ("t-bisection", "k-bisection"):
             F = extended(g, self.arithmetic, self.rounding)
@@ -311,6 +339,47 @@ class ImplicitSurface(_ImplicitOptions):
                                  **_method_options(scene))
         t_raw = jnp.where(res.hit, t0 + res.s * (t1 - t0), jnp.inf)
         return finish_hits(g, self, rays, t_raw, res.hit, res.steps, self.normals)
+
+
+_GRID_INPUTS = frozenset({"f", "lo", "hi", "w", "params", "rounding", "method", "culling"})
+_GRIDS: dict = {}  # (f, rounding, values digest) -> (grid, report); a few recent ones
+_GRIDS_KEPT = 8
+
+
+def _sign_grid(scene):
+    """(SignGrid or None, report) for a scene under construction (`culling`)."""
+    if scene.culling == "none":
+        return None, ""
+    if scene.method not in ("t-bisection", "k-bisection"):
+        return None, f"no sign grid: method {scene.method!r} does not bisect"
+    inputs = (scene.params, scene.w, scene.lo, scene.hi, scene.isovalues)
+    if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(inputs)):
+        return None, "no sign grid: params, w or the box are traced values"
+    if scene.culling == "auto" and not _is_heavy(scene.f, scene.field, scene.params):
+        return None, "no sign grid: f is light (auto builds one for networks)"
+    if scene._long_tape() is not None:
+        return None, "no sign grid: f runs on the tape path"
+    key = (scene.f, scene.rounding, values_key(inputs))
+    if key not in _GRIDS:
+        while len(_GRIDS) >= _GRIDS_KEPT:
+            _GRIDS.pop(next(iter(_GRIDS)))
+        _GRIDS[key] = build_sign_grid(scene.field, scene.lo, scene.hi, scene.w,
+                                      scene.params, scene.isovalues, scene.rounding)
+    return _GRIDS[key]
+
+
+def _near_possible_cells(scene, t0, t1, inside, p, D):
+    """The ray segments cut to the part near the sign grid's possible cells (all of it
+    while delta > 0: a narrow enclosure is accepted there without holding an isovalue)."""
+    s0, s1, near = segment_span(scene.sign_grid, scene.lo, scene.hi, scene.isovalues, p, D,
+                                inside)
+    off = scene.delta > 0
+    s0 = jnp.where(off, 0.0, s0)
+    s1 = jnp.where(off, 1.0, s1)
+    inside = jnp.where(off, inside, near)
+    length = t1 - t0
+    return (t0 + s0 * length, t0 + s1 * length, inside, p + s0[:, None] * D,
+            D * (s1 - s0)[:, None])
 
 
 def _method_options(scene):

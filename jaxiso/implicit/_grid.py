@@ -1,0 +1,180 @@
+"""Sign grids: enclosures of f on the cells of a regular grid over the scene's box, built
+once at construction, so that each ray walks only the part of its segment that passes
+near a cell where a level can lie (the min/max idea of the seed's volume octrees, Ch. 3,
+for functions: the cells' ranges come from the arithmetic, not from samples).
+
+The cells' enclosures are affine forms with three box symbols and fresh noise symbols for
+the error terms of the network's nonlinearities (`extend(fresh_symbols=)`): on the
+networks of bench_neural, AF1 alone leaves 49-56% of a 64^3 grid possible, the fresh
+symbols 1.9-2.3% (fox, hammer; sampled true ranges: 1.7%). The grid is refined level by
+level from 4^3, only below cells that hold one of the scene's isovalues; the others keep
+their parent's enclosure, so the grid stays sound for any isovalue (a slider), only
+looser away from the ones it was built for. benchmarks/NOTES.md, session 12.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._core import pytree_dataclass
+from ..arith import Interval, aa, extend
+
+FIRST_LEVEL = 4
+RESOLUTION = 64
+FRESH_SYMBOLS = 24
+FRESH_PER_OP = 3
+MAX_BOXES = 2**16  # cells tested per level at most (bunny at level 64: ~100k)
+BATCH = 4096
+SPACING = 0.9  # samples along a ray per cell edge, at least 1 / SPACING (see `segment_span`)
+PAD_ULPS = 8.0  # the cells' enclosures are widened by this many ulps of their magnitude
+
+
+@pytree_dataclass
+class SignGrid:
+    """Enclosures of f on the cells of the box [lo, hi] cut into [Nx, Ny, Nz] cells.
+
+    Attributes:
+      low: [Nx, Ny, Nz] float32 lower bounds of f on each (closed) cell.
+      high: [Nx, Ny, Nz] float32 upper bounds (inf / NaN where f may be undefined).
+    """
+
+    low: jax.Array
+    high: jax.Array
+
+    @property
+    def resolution(self) -> tuple:
+        return tuple(np.shape(self.low))
+
+
+def _box_bounds(g, rounding):
+    F = extend(g, "affine", rounding, n_symbols=3, fresh_symbols=FRESH_SYMBOLS,
+               fresh_per_op=FRESH_PER_OP)
+
+    @jax.jit
+    def bounds(lo, hi, w, params):
+        """Enclosures of g on the boxes [lo, hi] ([B, 3] each): (low [B], high [B])."""
+        boxes = [Interval(lo[:, i], hi[:, i]) for i in range(3)]
+        r = aa.to_interval(F(*boxes, w, params=params))
+        bad = ~r.defined | jnp.isnan(r.lo) | jnp.isnan(r.hi)
+        return jnp.where(bad, -jnp.inf, r.lo), jnp.where(bad, jnp.inf, r.hi)
+
+    return bounds
+
+
+def _possible(low, high, isovalues):
+    iso = isovalues.reshape((-1,) + (1,) * low.ndim)
+    return np.any((low <= iso) & (iso <= high), axis=0)
+
+
+def build_sign_grid(g, lo, hi, w, params, isovalues, rounding="fast",
+                    resolution=RESOLUTION, max_boxes=MAX_BOXES):
+    """The sign grid of ``g(x, y, z, w, params)`` on the box [lo, hi] (concrete values).
+
+    Returns (SignGrid, report): the grid at the finest level reached (`resolution`, or
+    coarser when the next level would test more than `max_boxes` cells) and a line
+    saying what was built and how long it took."""
+    start = time.perf_counter()
+    lo64 = np.asarray(lo, np.float64)
+    hi64 = np.asarray(hi, np.float64)
+    iso = np.asarray(isovalues, np.float32)
+    bounds = _box_bounds(g, rounding)
+    n = FIRST_LEVEL
+    low = np.full((1, 1, 1), -np.inf, np.float32)
+    high = np.full((1, 1, 1), np.inf, np.float32)
+    todo = np.ones((n,) * 3, bool)
+    tested = 0
+    while True:
+        low = _upsample(low, n)
+        high = _upsample(high, n)
+        cells = np.argwhere(todo)
+        edge = (hi64 - lo64) / n
+        a = (lo64 + cells * edge).astype(np.float32)
+        b = (lo64 + (cells + 1) * edge).astype(np.float32)
+        cl, ch = _evaluate(bounds, a, b, w, params)
+        low[tuple(cells.T)] = cl
+        high[tuple(cells.T)] = ch
+        tested += len(cells)
+        possible = _possible(low, high, iso) | ~np.isfinite(low) | ~np.isfinite(high)
+        children = 8 * int(np.count_nonzero(possible))
+        if 2 * n > resolution or children > max_boxes:
+            break
+        n *= 2
+        todo = np.repeat(np.repeat(np.repeat(possible, 2, 0), 2, 1), 2, 2)
+    pad = PAD_ULPS * np.spacing(np.maximum(np.abs(low), np.abs(high)).astype(np.float32))
+    grid = SignGrid(jnp.asarray(low - pad), jnp.asarray(high + pad))
+    share = float(np.mean(_possible(low, high, iso)))
+    report = (f"sign grid {n}^3: {share:.1%} of the cells may hold the isovalues "
+              f"({tested:,} cells tested, {time.perf_counter() - start:.1f} s)")
+    return grid, report
+
+
+def _upsample(a, n):
+    k = n // a.shape[0]
+    return np.repeat(np.repeat(np.repeat(a, k, 0), k, 1), k, 2)
+
+
+def _evaluate(bounds, a, b, w, params):
+    """bounds on the boxes [a, b] in batches of BATCH (one compiled shape)."""
+    lows, highs = [], []
+    for s in range(0, len(a), BATCH):
+        m = min(BATCH, len(a) - s)
+        pa = np.zeros((BATCH, 3), np.float32)
+        pb = np.zeros((BATCH, 3), np.float32)
+        pa[:m], pb[:m] = a[s:s + m], b[s:s + m]
+        cl, ch = bounds(pa, pb, w, params)
+        lows.append(np.asarray(cl)[:m])
+        highs.append(np.asarray(ch)[:m])
+    return np.concatenate(lows), np.concatenate(highs)
+
+
+def segment_span(grid: SignGrid, lo, hi, isovalues, p, D, inside):
+    """The part of each ray segment ``p + D s``, s in [0, 1], that may hold a level.
+
+    Samples every segment at K = ceil(N / SPACING) + 1 even steps (N the grid's largest
+    dimension): a segment inside the box moves at most (hi - lo)_i along axis i, so
+    consecutive samples are less than a cell apart on every axis, and any point of the
+    segment in a possible cell has a sample in that cell or a neighbour. Returns (s0 [P],
+    s1 [P], inside [P]): no level lies on the segment outside [s0, s1]; rays whose
+    samples meet no possible cell or neighbour are no longer inside."""
+    shape = np.array(np.shape(grid.low))
+    iso = jnp.reshape(isovalues, (-1, 1, 1, 1))
+    possible = (jnp.any((grid.low <= iso) & (iso <= grid.high), axis=0)
+                | ~jnp.isfinite(grid.low) | ~jnp.isfinite(grid.high))
+    near = jax.lax.reduce_window(possible, False, jax.lax.bitwise_or, (3, 3, 3),
+                                 (1, 1, 1), "SAME")
+    k = math.ceil(int(shape.max()) / SPACING) + 1
+    cell = (hi - lo) / jnp.asarray(shape, jnp.float32)
+    limit = jnp.asarray(shape - 1, jnp.int32)
+
+    def flags(i):
+        x = p + D * (i / (k - 1))
+        ijk = jnp.clip(jnp.floor((x - lo) / cell).astype(jnp.int32), 0, limit)
+        return near[ijk[:, 0], ijk[:, 1], ijk[:, 2]] & inside
+
+    def step(i, carry):
+        first, last = carry
+        f = flags(i)
+        return jnp.where(f & (first < 0), i, first), jnp.where(f, i, last)
+
+    none = jnp.full(inside.shape, -1, jnp.int32)
+    first, last = jax.lax.fori_loop(0, k, step, (none, none))
+    ds = 1.0 / (k - 1)
+    s0 = jnp.clip((first - 1) * ds, 0.0, 1.0)
+    s1 = jnp.clip((last + 1) * ds, 0.0, 1.0)
+    return s0, s1, inside & (first >= 0)
+
+
+def values_key(*trees) -> str:
+    """A digest of the arrays in `trees` (grid cache key)."""
+    h = hashlib.sha1()
+    for x in jax.tree_util.tree_leaves(trees):
+        a = np.asarray(x)
+        h.update(str((a.shape, a.dtype)).encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
