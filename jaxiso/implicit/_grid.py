@@ -7,7 +7,7 @@ The cells' enclosures are affine forms with three box symbols and fresh noise sy
 the error terms of the network's nonlinearities (`extend(fresh_symbols=)`): on the
 networks of bench_neural, AF1 alone leaves 49-56% of a 64^3 grid possible, the fresh
 symbols 1.9-2.3% (fox, hammer; sampled true ranges: 1.7%). The grid is refined level by
-level from 4^3, only below cells that hold one of the scene's isovalues; the others keep
+level from 16^3, only below cells that hold one of the scene's isovalues; the others keep
 their parent's enclosure, so the grid stays sound for any isovalue (a slider), only
 looser away from the ones it was built for. benchmarks/NOTES.md, session 12.
 """
@@ -25,11 +25,11 @@ import numpy as np
 from .._core import pytree_dataclass
 from ..arith import Interval, aa, extend
 
-FIRST_LEVEL = 4
+FIRST_LEVEL = 16
 RESOLUTION = 64
-FRESH_SYMBOLS = 24
-FRESH_PER_OP = 3
-MAX_BOXES = 2**16  # cells tested per level at most (bunny at level 64: ~100k)
+FRESH_SYMBOLS = 64
+FRESH_PER_OP = 8
+MAX_BOXES = 2**17  # cells tested per level at most (bunny at level 64: ~100k)
 BATCH = 4096
 SPACING = 0.9  # samples along a ray per cell edge, at least 1 / SPACING (see `segment_span`)
 PAD_ULPS = 8.0  # the cells' enclosures are widened by this many ulps of their magnitude
@@ -52,7 +52,12 @@ class SignGrid:
         return tuple(np.shape(self.low))
 
 
-def _box_bounds(g, rounding):
+_BOUNDS: dict = {}  # key -> compiled bounds (a rebuild after replace(params=) reuses it)
+
+
+def _box_bounds(g, rounding, key=None):
+    if key is not None and (key, rounding) in _BOUNDS:
+        return _BOUNDS[(key, rounding)]
     F = extend(g, "affine", rounding, n_symbols=3, fresh_symbols=FRESH_SYMBOLS,
                fresh_per_op=FRESH_PER_OP)
 
@@ -64,6 +69,10 @@ def _box_bounds(g, rounding):
         bad = ~r.defined | jnp.isnan(r.lo) | jnp.isnan(r.hi)
         return jnp.where(bad, -jnp.inf, r.lo), jnp.where(bad, jnp.inf, r.hi)
 
+    if key is not None:
+        while len(_BOUNDS) >= 4:  # each holds compiled programs (memory maps)
+            _BOUNDS.pop(next(iter(_BOUNDS)))
+        _BOUNDS[(key, rounding)] = bounds
     return bounds
 
 
@@ -73,8 +82,9 @@ def _possible(low, high, isovalues):
 
 
 def build_sign_grid(g, lo, hi, w, params, isovalues, rounding="fast",
-                    resolution=RESOLUTION, max_boxes=MAX_BOXES):
-    """The sign grid of ``g(x, y, z, w, params)`` on the box [lo, hi] (concrete values).
+                    resolution=RESOLUTION, max_boxes=MAX_BOXES, key=None):
+    """The sign grid of ``g(x, y, z, w, params)`` on the box [lo, hi] (concrete values);
+    `key` (hashable, naming g) keeps the compiled enclosure for the next build.
 
     Returns (SignGrid, report): the grid at the finest level reached (`resolution`, or
     coarser when the next level would test more than `max_boxes` cells) and a line
@@ -83,7 +93,7 @@ def build_sign_grid(g, lo, hi, w, params, isovalues, rounding="fast",
     lo64 = np.asarray(lo, np.float64)
     hi64 = np.asarray(hi, np.float64)
     iso = np.asarray(isovalues, np.float32)
-    bounds = _box_bounds(g, rounding)
+    bounds = _box_bounds(g, rounding, key)
     n = FIRST_LEVEL
     low = np.full((1, 1, 1), -np.inf, np.float32)
     high = np.full((1, 1, 1), np.inf, np.float32)

@@ -364,7 +364,8 @@ def _sign_grid(scene):
         while len(_GRIDS) >= _GRIDS_KEPT:
             _GRIDS.pop(next(iter(_GRIDS)))
         _GRIDS[key] = build_sign_grid(scene.field, scene.lo, scene.hi, scene.w,
-                                      scene.params, scene.isovalues, scene.rounding)
+                                      scene.params, scene.isovalues, scene.rounding,
+                                      key=(scene.f, scene.has_params))
     return _GRIDS[key]
 
 
