@@ -16,7 +16,11 @@ Section ``rays``, one row per network, size and caster, all on the same rays:
   jaxiso default   ``ji.intersect(S, rays)`` with ``S = ji.ImplicitSurface(m, lo, hi,
                    params=m.params, eps=2^-10)``: whatever the defaults are at run time
                    (the row records the scene's options, e.g. ``arithmetic``)
+                   (the scene's construction, which builds the sign grid, is timed
+                   apart: ``construct_s``)
   jaxiso interval / affine   the same with that arithmetic
+  jaxiso verify=sign   hits by sign change only
+  jaxiso culling=none  the default without the sign grid (every ray walks its segment)
   sphere L=net     method "sphere" with ``lipschitz=m.lipschitz`` (product of spectral
                    norms: a true bound, so guaranteed but tiny steps; default max_steps)
   sphere L=1       SDF networks only: the fast unguaranteed baseline
@@ -42,11 +46,13 @@ agreement on the pilot's pixels (a shared 2-core CPU cannot afford 10-minute cal
 
 Section ``tightness`` (always in full mode, with --tightness in quick mode): enclosure
 width / true range of each network on ray pieces of length 2^-4 .. 2^-14 of the domain
-edge, for every arithmetic of ``jaxiso.arith.ARITHMETICS`` through ``ji.extend``: affine
-gets one noise symbol (the piece's parameter), interval the piece's axis box (as the
-ray tracer builds them). Pieces are centred at points near the surface (the smallest
-|f| of uniform samples) along random directions; the true range is the float64 range of
-257 points along the piece. Median per length.
+edge, for interval, affine and affine+fresh64 through ``ji.extend``: affine gets one
+noise symbol (the piece's parameter), interval the piece's axis box (as the ray tracer
+builds them), affine+fresh64 the affine form with 64 fresh symbols for the
+nonlinearities' errors (``fresh_symbols=64``, the sign grid's arithmetic). Pieces are
+centred at points near the surface (the smallest |f| of uniform samples) along random
+directions; the true range is the float64 range of 257 points along the piece. Median
+per length.
 
 Writes ``<out>/neural_<backend>.json`` and charts ``neural_<backend>_scatter.png``
 (rays/s against hit-mask disagreement, per network) and ``..._tightness.png``.
@@ -95,6 +101,7 @@ HAND_SAMPLES = 128
 HAND_BISECTIONS = 8
 TIGHT_LENGTHS = tuple(2.0**-k for k in range(4, 15))  # of the domain edge
 TIGHT_SAMPLES = 257
+TIGHT_ARITHMETICS = ("interval", "affine", "affine+fresh64")  # the last: the sign grid's
 SLOW_S = 60.0  # this benchmark's default --slow-s
 
 
@@ -534,11 +541,15 @@ def tightness_section(networks, cfg):
         v = ref64.evaluate(layers, pts)
         true = v.max(axis=1) - v.min(axis=1)
         printed = []
-        for arith in ji.arith.ARITHMETICS:
-            coords, kw, form = piece_coords(arith, jnp.asarray(cc32), jnp.asarray(half32))
+        for arith in TIGHT_ARITHMETICS:
+            base, _, fresh = arith.partition("+fresh")
+            coords, kw, form = piece_coords(base, jnp.asarray(cc32), jnp.asarray(half32))
+            if fresh:  # the sign grid's arithmetic, here on ray pieces
+                kw = dict(kw, fresh_symbols=int(fresh))
+                form += f", {fresh} fresh symbols for the nonlinearities' errors"
             t0 = now()
             try:
-                width = enclosure_widths(net.mlp, arith, coords, kw)
+                width = enclosure_widths(net.mlp, base, coords, kw)
             except Exception as e:  # an arithmetic that cannot run leaves the others
                 errors[f"{net.name}/{arith}"] = f"{type(e).__name__}: {str(e)[:300]}"
                 print(f"  {net.name} {arith} FAILED: {errors[f'{net.name}/{arith}']}")
@@ -567,7 +578,7 @@ def tightness_section(networks, cfg):
                     printed)
     return dict(lengths_of_domain=list(lengths), domain_edge=edge,
                 points=cfg["tight_points"], true_range_samples=TIGHT_SAMPLES,
-                arithmetics=list(ji.arith.ARITHMETICS),
+                arithmetics=list(TIGHT_ARITHMETICS),
                 centres="smallest |f| of 2^14 uniform samples (float64), random directions",
                 rows=rows, errors=errors)
 

@@ -181,6 +181,7 @@ def test_replace_rebuilds_the_grid_only_when_f_changes(relu_scene):
     other = _weights(seed=4)["layers"]
     T = S.replace(params=other)
     assert T.sign_grid is not None and T.sign_grid is not S.sign_grid
+    assert T.sign_grid.resolution == S.sign_grid.resolution == (64,) * 3  # no recompile
     assert not np.array_equal(np.asarray(T.sign_grid.high), np.asarray(S.sign_grid.high))
 
 

@@ -86,9 +86,9 @@ def build_sign_grid(g, lo, hi, w, params, isovalues, rounding="fast",
     """The sign grid of ``g(x, y, z, w, params)`` on the box [lo, hi] (concrete values);
     `key` (hashable, naming g) keeps the compiled enclosure for the next build.
 
-    Returns (SignGrid, report): the grid at the finest level reached (`resolution`, or
-    coarser when the next level would test more than `max_boxes` cells) and a line
-    saying what was built and how long it took."""
+    Returns (SignGrid, report): `resolution`^3 cells holding the enclosures of the
+    finest level reached (`resolution`, or coarser when the next level would test more
+    than `max_boxes` cells) and a line saying what was built and how long it took."""
     start = time.perf_counter()
     lo64 = np.asarray(lo, np.float64)
     hi64 = np.asarray(hi, np.float64)
@@ -116,9 +116,12 @@ def build_sign_grid(g, lo, hi, w, params, isovalues, rounding="fast",
             break
         n *= 2
         todo = np.repeat(np.repeat(np.repeat(possible, 2, 0), 2, 1), 2, 2)
+    share = float(np.mean(_possible(low, high, iso)))
+    # always `resolution`^3 cells: a rebuild (replace(params=...)) keeps the shape, so the
+    # compiled intersect is reused
+    low, high = _upsample(low, resolution), _upsample(high, resolution)
     pad = PAD_ULPS * np.spacing(np.maximum(np.abs(low), np.abs(high)).astype(np.float32))
     grid = SignGrid(jnp.asarray(low - pad), jnp.asarray(high + pad))
-    share = float(np.mean(_possible(low, high, iso)))
     report = (f"sign grid {n}^3: {share:.1%} of the cells may hold the isovalues "
               f"({tested:,} cells tested, {time.perf_counter() - start:.1f} s)")
     return grid, report
