@@ -230,3 +230,26 @@ def test_delta_turns_culling_off(relu_scene):
 def test_culling_is_validated():
     with pytest.raises(ValueError, match="culling"):
         _scene(culling="octree")
+
+
+def test_span_holds_the_first_crossing_and_ends_soon_after(relu_scene):
+    """segment_span's [s0, s1] holds each ray's first float64 crossing; after it the span
+    ends within a few cells where the ray enters surely-inside cells (a sign change)."""
+    from jaxiso.implicit._field import ray_segments
+    from jaxiso.implicit._grid import segment_span
+
+    S = relu_scene
+    rays = CAM.rays().reshape((-1,))
+    t, _ = first_roots(lambda x, y, z, w: _field64(S.params, "relu")(np.stack([x, y, z], -1)),
+                       (LO,) * 3, (HI,) * 3, np.asarray(rays.origin),
+                       np.asarray(rays.direction), samples=3000)
+    t0, t1, inside, p, D = ray_segments(rays, S.lo, S.hi, 0.0, jnp.inf)
+    s0, s1, near = segment_span(S.sign_grid, S.lo, S.hi, S.isovalues, p, D, inside)
+    s0, s1, near = np.asarray(s0), np.asarray(s1), np.asarray(near)
+    hit = np.isfinite(t)
+    s = (t[hit] - np.asarray(t0)[hit]) / np.asarray(t1 - t0)[hit]
+    assert hit.sum() > 100 and np.all(near[hit])
+    assert np.all(s0[hit] <= s + 1e-6) and np.all(s <= s1[hit] + 1e-6)
+    cell = (HI - LO) / S.sign_grid.resolution[0]
+    length = np.linalg.norm(np.asarray(D)[hit], axis=-1)
+    assert np.median((s1[hit] - s) * length) < 6 * cell

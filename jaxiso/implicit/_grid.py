@@ -147,40 +147,52 @@ def _evaluate(bounds, a, b, w, params):
 
 
 def segment_span(grid: SignGrid, lo, hi, isovalues, p, D, inside):
-    """The part of each ray segment ``p + D s``, s in [0, 1], that may hold a level.
+    """The part of each ray segment ``p + D s``, s in [0, 1], that holds its first level
+    crossing, if any.
 
     Samples every segment at K = ceil(N / SPACING) + 1 even steps (N the grid's largest
     dimension): a segment inside the box moves at most (hi - lo)_i along axis i, so
     consecutive samples are less than a cell apart on every axis, and any point of the
-    segment in a possible cell has a sample in that cell or a neighbour. Returns (s0 [P],
-    s1 [P], inside [P]): no level lies on the segment outside [s0, s1]; rays whose
-    samples meet no possible cell or neighbour are no longer inside."""
+    segment in a possible cell has a sample in that cell or a neighbour. The span ends
+    after the last such sample, or earlier at a sample in a cell surely on the other
+    side of every isovalue than the segment's start (f - iso changed sign before it).
+    Returns (s0 [P], s1 [P], inside [P]): the first crossing lies in [s0, s1]; rays
+    whose samples meet no possible cell or neighbour are no longer inside."""
     shape = np.array(np.shape(grid.low))
     iso = jnp.reshape(isovalues, (-1, 1, 1, 1))
     possible = (jnp.any((grid.low <= iso) & (iso <= grid.high), axis=0)
                 | ~jnp.isfinite(grid.low) | ~jnp.isfinite(grid.high))
     near = jax.lax.reduce_window(possible, False, jax.lax.bitwise_or, (3, 3, 3),
                                  (1, 1, 1), "SAME")
+    # +1: surely above every isovalue, -1: surely below (NaN bounds compare False: 0)
+    side = (jnp.all(grid.low > iso, axis=0).astype(jnp.int32)
+            - jnp.all(grid.high < iso, axis=0).astype(jnp.int32))
     k = math.ceil(int(shape.max()) / SPACING) + 1
     cell = (hi - lo) / jnp.asarray(shape, jnp.float32)
     limit = jnp.asarray(shape - 1, jnp.int32)
 
-    def flags(i):
+    def sample(i):
         x = p + D * (i / (k - 1))
         ijk = jnp.clip(jnp.floor((x - lo) / cell).astype(jnp.int32), 0, limit)
-        return near[ijk[:, 0], ijk[:, 1], ijk[:, 2]] & inside
+        at = (ijk[:, 0], ijk[:, 1], ijk[:, 2])
+        return near[at] & inside, side[at]
+
+    start = sample(0)[1]
 
     def step(i, carry):
-        first, last = carry
-        f = flags(i)
-        return jnp.where(f & (first < 0), i, first), jnp.where(f, i, last)
+        first, last, other = carry
+        f, sd = sample(i)
+        crossed = (start != 0) & (sd == -start) & (other < 0)
+        return (jnp.where(f & (first < 0), i, first), jnp.where(f, i, last),
+                jnp.where(crossed, i, other))
 
     none = jnp.full(inside.shape, -1, jnp.int32)
-    first, last = jax.lax.fori_loop(0, k, step, (none, none))
+    first, last, other = jax.lax.fori_loop(0, k, step, (none, none, none))
     ds = 1.0 / (k - 1)
-    s0 = jnp.clip((first - 1) * ds, 0.0, 1.0)
-    s1 = jnp.clip((last + 1) * ds, 0.0, 1.0)
-    return s0, s1, inside & (first >= 0)
+    # one sample more past `other`: its cell index may be a rounding off the point's
+    s1 = jnp.where(other >= 0, jnp.minimum(last, other) + 1, last + 1) * ds
+    return (jnp.clip((first - 1) * ds, 0.0, 1.0), jnp.clip(s1, 0.0, 1.0),
+            inside & (first >= 0))
 
 
 def values_key(*trees) -> str:
