@@ -362,6 +362,31 @@ def value_elements(f: Callable, n_args: int) -> int:
     return walk(closed.jaxpr)
 
 
+def network_shape(f: Callable, n_args: int) -> tuple[int, int]:
+    """(equations, nonlinear vector equations) of f's jaxpr on `n_args` float32 scalars
+    (call-like bodies counted inside): networks have few equations, some of them
+    nonlinear operations on vectors (activations), where `fresh_symbols` apply; long
+    scalar programs have thousands and none."""
+    avals = [jax.ShapeDtypeStruct((), jnp.float32)] * n_args
+    closed = jax.make_jaxpr(f)(*avals)
+
+    def walk(jaxpr):
+        eqns = vectors = 0
+        for eqn in jaxpr.eqns:
+            body = _call_body(eqn)
+            if body is not None:
+                e, v = walk(body.jaxpr if isinstance(body, jcore.ClosedJaxpr) else body)
+                eqns, vectors = eqns + e, vectors + v
+                continue
+            eqns += 1
+            vectors += (eqn.primitive.name in _NONLINEAR
+                        and any(len(v.aval.shape) == 1 and v.aval.shape[0] > 1
+                                for v in eqn.outvars))
+        return eqns, vectors
+
+    return walk(closed.jaxpr)
+
+
 def flat_program(f: Callable, n_args: int):
     """f traced on `n_args` float32 scalars and flattened to straight-line nodes.
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import sys
 import time
 
 import jax
@@ -32,6 +33,7 @@ FRESH_PER_OP = 8
 MAX_BOXES = 2**17  # cells tested per level at most (bunny at level 64: ~100k)
 BATCH = 4096
 SPACING = 0.9  # samples along a ray per cell edge, at least 1 / SPACING (see `segment_span`)
+PROGRESS_AFTER_S = 2.0
 PAD_ULPS = 8.0  # the cells' enclosures are widened by this many ulps of their magnitude
 
 
@@ -110,6 +112,7 @@ def build_sign_grid(g, lo, hi, w, params, isovalues, rounding="fast",
         low[tuple(cells.T)] = cl
         high[tuple(cells.T)] = ch
         tested += len(cells)
+        _progress(start, f"sign grid: {n}^3 level, {tested:,} cells tested")
         possible = _possible(low, high, iso) | ~np.isfinite(low) | ~np.isfinite(high)
         children = 8 * int(np.count_nonzero(possible))
         if 2 * n > resolution or children > max_boxes:
@@ -124,7 +127,15 @@ def build_sign_grid(g, lo, hi, w, params, isovalues, rounding="fast",
     grid = SignGrid(jnp.asarray(low - pad), jnp.asarray(high + pad))
     report = (f"sign grid {n}^3: {share:.1%} of the cells may hold the isovalues "
               f"({tested:,} cells tested, {time.perf_counter() - start:.1f} s)")
+    _progress(start, report, end=True)
     return grid, report
+
+
+def _progress(start, message, end=False):
+    """One progress line on stderr once a build has taken PROGRESS_AFTER_S (networks'
+    grids take 5-15 s on a 2-core CPU)."""
+    if time.perf_counter() - start >= PROGRESS_AFTER_S:
+        print(f"\r{message:<78}", end="\n" if end else "", file=sys.stderr, flush=True)
 
 
 def _upsample(a, n):

@@ -31,7 +31,7 @@ from .._core import (
     pytree_dataclass,
     static_field,
 )
-from ..arith._extend import value_elements
+from ..arith._extend import network_shape, value_elements
 from . import _bisect
 from ._auto import choose_arithmetic
 from ._field import (
@@ -357,8 +357,9 @@ def _sign_grid(scene):
         return None, "no sign grid: params, w or the box are traced values"
     if scene.culling == "auto" and not _is_heavy(scene.f, scene.field, scene.params):
         return None, "no sign grid: f is light (auto builds one for networks)"
-    if scene._long_tape() is not None:
-        return None, "no sign grid: f runs on the tape path"
+    if scene.culling == "auto" and not _network_like(scene):
+        return None, ("no sign grid: f is no network (auto builds one for functions of "
+                      f"at most {GRID_EQUATIONS} operations, some on vectors)")
     key = (scene.f, scene.rounding, values_key(inputs))
     if key not in _GRIDS:
         while len(_GRIDS) >= _GRIDS_KEPT:
@@ -367,6 +368,21 @@ def _sign_grid(scene):
                                       scene.params, scene.isovalues, scene.rounding,
                                       key=(scene.f, scene.has_params))
     return _GRIDS[key]
+
+
+# A sign grid compiles f's affine extension with fresh symbols: cheap for networks (fox:
+# 30 operations), minutes for long scalar programs, which gain nothing from the symbols
+# (they only take the errors of vector operations) and run on the tape path.
+GRID_EQUATIONS = 256
+
+
+def _network_like(scene) -> bool:
+    g = scene.field
+    try:
+        eqns, vectors = network_shape(lambda x, y, z, w: g(x, y, z, w, scene.params), 4)
+    except Exception:  # noqa: BLE001 - a function that cannot be traced on scalars
+        return False
+    return eqns <= GRID_EQUATIONS and vectors > 0
 
 
 def _near_possible_cells(scene, t0, t1, inside, p, D):
