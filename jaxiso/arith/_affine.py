@@ -199,16 +199,18 @@ def _chebyshev(x: Affine, g, dg, dg_inv, convex, iv: Interval, fallback_iv: Inte
     rounding bounded by `abs_pad`); a point range then takes slope 0 (its tangent term
     is 0 whatever the slope), so no derivative is evaluated at the range's end.
     `ulps` (default `_LIN_ULPS`): the relative pad of the error bounds, for a rule that
-    bounds its own rounding. `chord` (optional): ``(a, b) -> slope`` of the chord for
-    ``a < b``, for a rule that computes it without the cancellation of g(b) - g(a).
+    bounds its own rounding. `chord` (optional): ``(a, b, slope) -> slope`` of the chord
+    for ``a < b`` given the difference quotient, for a rule that computes it without the
+    cancellation of g(b) - g(a) where that matters.
     """
     a, b = iv.lo, iv.hi
     s = jnp.where(convex, 1.0, -1.0)
     ga, gb = s * g(a), s * g(b)
     w = b - a
     point_slope = s * dg(a) if g_dg is None else jnp.where(jnp.isnan(w), jnp.nan, 0.0)
-    chord_slope = ((gb - ga) / jnp.where(w > 0, w, 1.0) if chord is None
-                   else s * chord(a, jnp.where(w > 0, b, a + 1.0)))
+    chord_slope = (gb - ga) / jnp.where(w > 0, w, 1.0)
+    if chord is not None:
+        chord_slope = s * chord(a, jnp.where(w > 0, b, a + 1.0), s * chord_slope)
     beta = jnp.where(w > 0, chord_slope, point_slope)
     xi = jnp.clip(dg_inv(s * beta), a, b)
     xi = jnp.where(jnp.isnan(xi), 0.5 * (a + b), xi)

@@ -261,14 +261,14 @@ def elu_affine(x, *rest, body):
         e = jnp.expm1(jnp.minimum(v, 0.0))
         return jnp.where(v > 0, v, alpha * e), jnp.where(v > 0, 1.0, alpha * (e + 1.0))
 
-    def chord(a, b):
+    def chord(a, b, quotient):
         # below 0 the chord's slope is alpha e^a expm1(b - a) / (b - a): no cancellation
         # of e^b - e^a on a small range (that cancellation, rounded, needed pads of 3 ulps
         # of the magnitudes and 3 eps absolute, which summed through a network's layers
         # were the floor of bunny's enclosures: 0.005 wide on pieces of any length)
         w = b - a
         below = alpha * jnp.exp(jnp.minimum(a, 0.0)) * jnp.expm1(jnp.minimum(w, 80.0)) / w
-        return jnp.where(b <= 0, below, (g(b) - g(a)) / w)
+        return jnp.where(b <= 0, below, quotient)  # across 0 g(b) - g(a) cannot cancel
 
     # Rounding of the error bounds: every value above has a small relative error (expm1
     # and exp of the width, not differences of e^v), so one ulp of the magnitudes pads it:
