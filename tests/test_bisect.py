@@ -307,3 +307,100 @@ def test_t_bisection_matches_stack_reference_on_surfaces(name, arithmetic):
     assert ref[1].sum() > 50
     for path, run in _kernels(test, max_steps, lanes=64, paths=("packet", "lanes")).items():
         _assert_same(run(p, D, d_max, inside), ref, path)
+
+
+# ----------------------------------------------------- leaps (stretches with no root)
+
+
+def _roots_oracle(p, D, s0, s1):
+    """An exact box test over up to three roots per ray (p[..., :3], nan: none): a piece
+    is possible where it holds a root."""
+    roots = p[..., :3]
+    possible = jnp.any((roots >= s0[..., None]) & (roots <= s1[..., None]), axis=-1)
+    return _bisect.BoxTest(possible, jnp.ones_like(possible), jnp.zeros_like(possible))
+
+
+def _next_root(aux, s):
+    """ahead for `_roots_oracle`: no root in [s, the first root at or after s)."""
+    roots = aux
+    later = jnp.where(roots >= s[..., None], roots, jnp.inf)
+    return jnp.min(later, axis=-1)
+
+
+def _roots_rays(n=256, seed=3):
+    rng = np.random.default_rng(seed)
+    roots = rng.uniform(0.0, 1.0, (n, 3)).astype(np.float32)
+    roots[rng.random((n, 3)) < 0.4] = np.nan
+    p = roots
+    D = np.zeros((n, 3), np.float32)
+    d_max = rng.integers(1, 21, n).astype(np.int32)
+    active = rng.random(n) < 0.9
+    return p, D, d_max, active
+
+
+def test_leaps_keep_the_first_root_in_fewer_steps():
+    """Walks that leap over stretches known to hold no root (`ahead`, `leap`) find the
+    piece at d_max that holds each ray's first root, as the stack reference without them
+    does (a root on the boundary of two pieces may be reported in either), in fewer
+    steps; on lanes, in one loop and in the packet path alike."""
+    p, D, d_max, active = _roots_rays()
+    max_steps = 256 * _bisect.MAX_DEPTH
+    ref = stack_bisect(lambda s0, s1: _roots_oracle(p, D, s0, s1), d_max, active,
+                       max_steps)
+    first = np.nanmin(np.where(np.isnan(p), np.inf, p), axis=-1)
+    rooted = active & np.isfinite(first)
+    np.testing.assert_array_equal(ref[1], rooted)
+    width = 2.0 ** -d_max.astype(np.float64)
+
+    def packet(p, D, d_max, active):
+        def one(p, D, d_max, active):
+            return _bisect.t_bisect(functools.partial(_roots_oracle, p, D), d_max, active,
+                                    max_steps, ahead=functools.partial(_next_root, p))
+        return jax.vmap(one)(p, D, d_max, active)
+
+    runs = {lanes: jax.jit(lambda p, D, d_max, active, lanes=lanes: _bisect.t_bisect_lanes(
+        _roots_oracle, p, D, d_max, active, lanes, max_steps, ahead=_next_root, aux=p))
+        for lanes in (32, None)}
+    runs["packet"] = jax.jit(packet)
+    for path, run in runs.items():
+        res = run(p, D, d_max, active)
+        hit, s, steps = (np.asarray(a) for a in (res.hit, res.s, res.steps))
+        np.testing.assert_array_equal(hit, rooted, err_msg=str(path))
+        # the hit piece [s - w/2, s + w/2] holds the first root
+        assert np.all(np.abs(s[rooted] - first[rooted]) <= 0.5 * width[rooted] + 1e-7)
+        assert np.all(steps <= ref[2])
+        assert steps[rooted].mean() < 0.5 * ref[2][rooted].mean()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_leap_lands_on_the_largest_piece_in_the_stretch(seed):
+    """leap against a brute-force search over depths: the piece it lands on starts after
+    the walk's piece and at most at s_free, and no depth from d0 up holds a larger one;
+    it stays where no piece starts in (start, s_free]; past when s_free >= 1."""
+    rng = np.random.default_rng(seed)
+    n = 2000
+    d = rng.integers(0, 16, n)
+    k = (rng.random(n) * 2.0**d).astype(np.int64)
+    d0 = np.minimum(d, rng.integers(0, 6, n))
+    d_max = np.maximum(d, rng.integers(0, 20, n))
+    start = k * 2.0**-d
+    s_free = np.where(rng.random(n) < 0.2, start + rng.uniform(0, 1e-4, n),
+                      start + rng.uniform(0, 1.2, n) * (1 - start)).astype(np.float32)
+    k2, d2, past = (np.asarray(a) for a in _bisect.leap(
+        jnp.asarray(k, jnp.int32), jnp.asarray(d, jnp.int32), jnp.asarray(s_free),
+        jnp.asarray(d0, jnp.int32), jnp.asarray(d_max, jnp.int32)))
+    for i in range(n):
+        free = min(float(s_free[i]), 1.0)
+        best = None
+        for depth in range(int(d0[i]), int(d_max[i]) + 1):
+            m = np.floor(free * 2.0**depth)
+            if m * 2.0**-depth > start[i] and m < 2.0**depth:
+                best = (int(m), depth)
+                break
+        assert past[i] == (s_free[i] >= 1.0)
+        if past[i]:  # the walk is over: where it stands does not matter
+            continue
+        if best is None:
+            assert (k2[i], d2[i]) == (k[i], d[i]), i
+        else:
+            assert (k2[i], d2[i]) == best, (i, k[i], d[i], float(s_free[i]), d0[i], d_max[i])

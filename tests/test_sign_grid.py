@@ -234,9 +234,11 @@ def test_culling_is_validated():
 
 def test_span_holds_the_first_crossing_and_ends_soon_after(relu_scene):
     """segment_span's [s0, s1] holds each ray's first float64 crossing; after it the span
-    ends within a few cells where the ray enters surely-inside cells (a sign change)."""
+    ends within a few cells where the ray enters surely-inside cells (a sign change). The
+    gap of the samples that holds the crossing is marked, and the marks leave out part
+    of the spans (stretches that pass no possible cell)."""
     from jaxiso.implicit._field import ray_segments
-    from jaxiso.implicit._grid import segment_span
+    from jaxiso.implicit._grid import free_from, samples_per_segment, segment_span
 
     S = relu_scene
     rays = CAM.rays().reshape((-1,))
@@ -244,8 +246,8 @@ def test_span_holds_the_first_crossing_and_ends_soon_after(relu_scene):
                        (LO,) * 3, (HI,) * 3, np.asarray(rays.origin),
                        np.asarray(rays.direction), samples=3000)
     t0, t1, inside, p, D = ray_segments(rays, S.lo, S.hi, 0.0, jnp.inf)
-    s0, s1, near = segment_span(S.sign_grid, S.lo, S.hi, S.isovalues, p, D, inside)
-    s0, s1, near = np.asarray(s0), np.asarray(s1), np.asarray(near)
+    span = segment_span(S.sign_grid, S.lo, S.hi, S.isovalues, p, D, inside)
+    s0, s1, near = np.asarray(span.s0), np.asarray(span.s1), np.asarray(span.inside)
     hit = np.isfinite(t)
     s = (t[hit] - np.asarray(t0)[hit]) / np.asarray(t1 - t0)[hit]
     assert hit.sum() > 100 and np.all(near[hit])
@@ -253,3 +255,37 @@ def test_span_holds_the_first_crossing_and_ends_soon_after(relu_scene):
     cell = (HI - LO) / S.sign_grid.resolution[0]
     length = np.linalg.norm(np.asarray(D)[hit], axis=-1)
     assert np.median((s1[hit] - s) * length) < 6 * cell
+    # the crossing's gap is marked: the first marked gap from the span's start is at or
+    # before it
+    gaps = samples_per_segment(S.sign_grid) - 1
+    marks = np.asarray(span.marks)
+    u = s * gaps
+    bits = (marks[hit][np.arange(hit.sum()), (u // 32).astype(int)]
+            >> (np.floor(u) % 32).astype(np.uint32)) & 1
+    assert np.all(bits == 1)
+    free = np.asarray(free_from(jnp.asarray(marks[hit]), jnp.asarray(s0[hit] * gaps)))
+    assert np.all(free <= np.floor(u))
+    # some gaps inside the spans are empty (the walks leap over them)
+    i = np.arange(gaps)
+    inside_span = (i[None] >= np.floor(s0[near] * gaps)[:, None]) & (
+        i[None] < np.ceil(s1[near] * gaps)[:, None])
+    marked = (marks[near][:, i // 32] >> (i % 32).astype(np.uint32)) & 1
+    assert (marked[inside_span] == 0).sum() > 40  # 89 of 1,279 when written
+
+def test_free_from_finds_the_next_marked_gap():
+    """free_from against a loop over the bits: the first marked gap at or after floor(u)
+    (inf when none), over words of 32 gaps."""
+    from jaxiso.implicit._grid import free_from
+
+    rng = np.random.default_rng(0)
+    n, words = 500, 3
+    bits = rng.random((n, 32 * words)) < rng.choice([0.0, 0.02, 0.3], (n, 1))
+    marks = np.zeros((n, words), np.uint32)
+    for w in range(words):
+        for b in range(32):
+            marks[:, w] |= bits[:, 32 * w + b].astype(np.uint32) << np.uint32(b)
+    u = rng.uniform(-1.0, 32 * words + 1.0, n).astype(np.float32)
+    got = np.asarray(free_from(jnp.asarray(marks), jnp.asarray(u)))
+    for i in range(n):
+        at = [j for j in range(32 * words) if bits[i, j] and j >= max(np.floor(u[i]), 0)]
+        assert got[i] == (at[0] if at else np.inf), (i, u[i])

@@ -91,6 +91,31 @@ def advance(k, d, accept, descend, floor=0):
     return k, d, accept | (~descend & ((k_next >> d_next) >= 1))
 
 
+def leap(k, d, s_free, d0, d_max):
+    """The walk's next piece (k, d) moved on past [its start, s_free), a stretch known to
+    hold no root (`t_bisect_lanes`' `ahead`): onto the largest piece (depth d0 to d_max)
+    that starts after its start and at most at s_free (at that depth the last such);
+    (k, d) itself when there is none.
+    From there the stackless walk covers the rest of [0, 1] as usual. Elementwise;
+    returns (k, d, past): past where s_free >= 1 (the walk is over)."""
+    top = MAX_DEPTH
+    start = k << (top - d)  # the piece's start in units of 2^-MAX_DEPTH (exact)
+    step = top - d_max  # no piece below depth d_max
+    end = jnp.floor(jnp.clip(s_free, 0.0, 1.0) * piece_width(-jnp.int32(top)))
+    end = (jnp.minimum(end, 2.0**top - 1).astype(jnp.int32) >> step) << step
+    # the multiple of the most trailing zeros in (start, end]: end with the bits below
+    # the highest one where start and end differ cleared
+    diff = start ^ end
+    high = 31 - lax.clz(jnp.maximum(diff, 1))
+    target = (end >> high) << high
+    zeros = jnp.where(target == 0, top, _trailing_zeros(jnp.maximum(target, 1)))
+    depth = jnp.clip(top - zeros, d0, d_max)
+    moved = end > start
+    k = jnp.where(moved, end >> (top - depth), k)
+    d = jnp.where(moved, depth, d)
+    return k, d, s_free >= 1.0
+
+
 # t-bisection: per-ray state (scalars or [P] leaves) for `jaxiso._lanes.run_rays`
 _T_RESULTS = ("k", "d", "hit", "steps")
 _T_KEYS = _T_RESULTS + ("going", "dmax", "d0")
@@ -106,10 +131,12 @@ def _t_start(d_max, active, d_start=0):
                 hit=jnp.zeros_like(active), steps=zeros)
 
 
-def _t_step(test, st, max_steps=None):
+def _t_step(test, st, max_steps=None, ahead=None):
     """One t-bisection step of every going ray (elementwise) with steps left (below
     max_steps, None: not checked); other rays come back unchanged. An accepted ray stops
-    on (k, d) of its hit piece."""
+    on (k, d) of its hit piece. ahead: None or ``ahead(st, s) -> s_free`` [..]: the
+    ray's stretch [s, s_free) holds no root (e.g. a sign grid's empty cells); a walk
+    that moves on to a piece starting at s leaps past it (`leap`)."""
     k, d, go = st["k"], st["d"], st["going"]
     if max_steps is not None:
         go = go & (st["steps"] < max_steps)
@@ -117,6 +144,13 @@ def _t_step(test, st, max_steps=None):
     accept = r.possible & r.finite & ((d >= st["dmax"]) | r.small)
     descend = r.possible & ~accept & (d < st["dmax"])
     k_new, d_new, finished = advance(k, d, accept, descend, st["d0"])
+    if ahead is not None:
+        moving = ~accept & ~finished
+        k_leap, d_leap, past = leap(k_new, d_new, ahead(st, piece(k_new, d_new)[0]),
+                                    st["d0"], st["dmax"])
+        k_new = jnp.where(moving, k_leap, k_new)
+        d_new = jnp.where(moving, d_leap, d_new)
+        finished = finished | (moving & past)
     return dict(st, k=jnp.where(go, k_new, k), d=jnp.where(go, d_new, d),
                 going=st["going"] & ~(go & finished), hit=st["hit"] | (go & accept),
                 steps=st["steps"] + go.astype(jnp.int32))
@@ -161,7 +195,7 @@ def _verified_rounds(run, verify, state, max_steps: int):
     return out
 
 
-def t_bisect(test, d_max, active, max_steps: int, verify=None) -> Result:
+def t_bisect(test, d_max, active, max_steps: int, verify=None, ahead=None) -> Result:
     """Stackless bisection of one ray's segment (call under vmap for a packet: one
     batched loop, until the packet's slowest ray is done).
 
@@ -173,9 +207,13 @@ def t_bisect(test, d_max, active, max_steps: int, verify=None) -> Result:
       verify: None (a piece whose enclosure holds an isovalue at depth d_max is the hit,
         the seed's rule) or ``verify(s0, s1) -> bool``: such a piece is the hit only when
         verify establishes a root in it; otherwise the walk goes on past it.
+      ahead: None or ``ahead(s) -> s_free``: [s, s_free) holds no root (`_t_step`).
     """
+    leap_past = None if ahead is None else (lambda st, s: ahead(s))
+
     def run(st):
-        return run_rays(functools.partial(_t_step, test, max_steps=max_steps),
+        return run_rays(functools.partial(_t_step, test, max_steps=max_steps,
+                                          ahead=leap_past),
                         _walking(max_steps), st, _T_KEYS,
                         max_steps=max_steps, steps="steps")
 
@@ -291,7 +329,8 @@ def start_depth(test, p, D, d_max, active):
 
 
 def t_bisect_lanes(test, p, D, d_max, active, lanes: int | None, max_steps: int,
-                   verify=None, d_start=0, min_width: int = 32) -> Result:
+                   verify=None, d_start=0, min_width: int = 32, ahead=None,
+                   aux=None) -> Result:
     """t-bisection of a batch of rays [N] on `lanes` persistent lanes with refill
     (`jaxiso._lanes.run_rays`; rays that miss the domain never enter the queue), or, with
     lanes None, one loop over the batch. Same per-ray step and results as `t_bisect`.
@@ -313,11 +352,18 @@ def t_bisect_lanes(test, p, D, d_max, active, lanes: int | None, max_steps: int,
       d_start: int32 [] or [N], the depth the walks start at (`start_depth`); pieces
         above it are not tested.
       min_width: static width of the narrowest lane phase (`jaxiso._lanes.run_lanes`).
+      ahead, aux: None, or ``ahead(aux, s) -> s_free`` and its per-ray data (a pytree of
+        [N, ...] leaves): the ray's stretch [s, s_free) holds no root (`_t_step`).
     """
+    leap_past = None if ahead is None else (lambda st, s: ahead(st["aux"], s))
+
     def step(st):
-        return _t_step(lambda s0, s1: test(st["p"], st["D"], s0, s1), st, max_steps)
+        return _t_step(lambda s0, s1: test(st["p"], st["D"], s0, s1), st, max_steps,
+                       leap_past)
 
     state = dict(_t_start(d_max, active, d_start), p=p, D=D)
+    if ahead is not None:
+        state["aux"] = aux
     if lanes is not None and verify is not None:
         # "sure": the lane's hit piece passed verify; a held piece keeps the lane busy
         state["sure"] = jnp.zeros_like(state["hit"])
@@ -330,7 +376,7 @@ def t_bisect_lanes(test, p, D, d_max, active, lanes: int | None, max_steps: int,
     def run(st):
         out = run_rays(step, _walking(max_steps), st, _T_KEYS, max_steps=max_steps,
                        steps="steps", lanes=lanes, min_width=min_width)
-        return dict(out, p=p, D=D)
+        return dict(out, p=p, D=D) if ahead is None else dict(out, p=p, D=D, aux=aux)
 
     check = None if verify is None else (
         lambda st: verify(p, D, *piece(st["k"], st["d"])))

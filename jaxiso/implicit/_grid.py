@@ -18,6 +18,7 @@ import hashlib
 import math
 import sys
 import time
+import typing
 
 import jax
 import jax.numpy as jnp
@@ -157,53 +158,106 @@ def _evaluate(bounds, a, b, w, params):
     return np.concatenate(lows), np.concatenate(highs)
 
 
-def segment_span(grid: SignGrid, lo, hi, isovalues, p, D, inside):
+class Span(typing.NamedTuple):
+    """Where along each ray segment ``p + D s`` (s in [0, 1]) its first level crossing
+    can lie, from a sign grid (`segment_span`).
+
+    s0, s1: [P] the crossing, if any, lies in [s0, s1].
+    inside: [P] bool, False where no stretch of the segment meets a possible cell.
+    marks: [P, W] uint32 bits over the K - 1 gaps between the segment's K even samples
+      (gap i: s in [i, i + 1] / (K - 1)): set where the gap may hold a crossing (a cell
+      it passes may hold an isovalue), clear where it holds none (`free_from`).
+    """
+
+    s0: jax.Array
+    s1: jax.Array
+    inside: jax.Array
+    marks: jax.Array
+
+
+def samples_per_segment(grid: SignGrid) -> int:
+    """K = ceil(N / SPACING) + 1 samples (N the grid's largest dimension)."""
+    return math.ceil(max(grid.resolution) / SPACING) + 1
+
+
+def segment_span(grid: SignGrid, lo, hi, isovalues, p, D, inside) -> Span:
     """The part of each ray segment ``p + D s``, s in [0, 1], that holds its first level
-    crossing, if any.
+    crossing, if any, and the gaps between samples where it may lie.
 
     Samples every segment at K = ceil(N / SPACING) + 1 even steps (N the grid's largest
     dimension): a segment inside the box moves at most (hi - lo)_i along axis i, so
-    consecutive samples are less than a cell apart on every axis, and any point of the
-    segment in a possible cell has a sample in that cell or a neighbour. The span ends
-    after the last such sample, or earlier at a sample in a cell surely on the other
-    side of every isovalue than the segment's start (f - iso changed sign before it).
-    Returns (s0 [P], s1 [P], inside [P]): the first crossing lies in [s0, s1]; rays
-    whose samples meet no possible cell or neighbour are no longer inside."""
+    consecutive samples are less than a cell apart on every axis. The stretch between
+    two samples lies in the box they span, so in the cells between theirs, at most two
+    per axis: the gap holds no crossing unless one of the 2 x 2 x 2 cells from the
+    lower corner of theirs on is possible (one lookup in a table of such blocks). The
+    span runs from the first such gap to the last, or ends earlier at a sample in a cell
+    surely on the other side of every isovalue than the segment's start (f - iso changed
+    sign before it). Rays with no such gap are no longer inside."""
     shape = np.array(np.shape(grid.low))
     iso = jnp.reshape(isovalues, (-1, 1, 1, 1))
     possible = (jnp.any((grid.low <= iso) & (iso <= grid.high), axis=0)
                 | ~jnp.isfinite(grid.low) | ~jnp.isfinite(grid.high))
-    near = jax.lax.reduce_window(possible, False, jax.lax.bitwise_or, (3, 3, 3),
-                                 (1, 1, 1), "SAME")
+    block = jax.lax.reduce_window(jnp.pad(possible, ((0, 1), (0, 1), (0, 1))), False,
+                                  jax.lax.bitwise_or, (2, 2, 2), (1, 1, 1), "VALID")
     # +1: surely above every isovalue, -1: surely below (NaN bounds compare False: 0)
     side = (jnp.all(grid.low > iso, axis=0).astype(jnp.int32)
             - jnp.all(grid.high < iso, axis=0).astype(jnp.int32))
-    k = math.ceil(int(shape.max()) / SPACING) + 1
+    k = samples_per_segment(grid)
     cell = (hi - lo) / jnp.asarray(shape, jnp.float32)
     limit = jnp.asarray(shape - 1, jnp.int32)
 
     def sample(i):
+        """The cell index [P, 3] of sample i."""
         x = p + D * (i / (k - 1))
-        ijk = jnp.clip(jnp.floor((x - lo) / cell).astype(jnp.int32), 0, limit)
-        at = (ijk[:, 0], ijk[:, 1], ijk[:, 2])
-        return near[at] & inside, side[at]
+        return jnp.clip(jnp.floor((x - lo) / cell).astype(jnp.int32), 0, limit)
 
-    start = sample(0)[1]
+    def at(table, ijk):
+        return table[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
+
+    cell0 = sample(0)
+    start = at(side, cell0)
+    words = -(-(k - 1) // 32)
 
     def step(i, carry):
-        first, last, other = carry
-        f, sd = sample(i)
-        crossed = (start != 0) & (sd == -start) & (other < 0)
-        return (jnp.where(f & (first < 0), i, first), jnp.where(f, i, last),
-                jnp.where(crossed, i, other))
+        first, last, other, prev, marks = carry
+        ijk = sample(i)
+        # gap i - 1, between samples i - 1 and i
+        gap = i - 1
+        may = inside & at(block, jnp.minimum(prev, ijk))
+        bit = jnp.where(may, jnp.uint32(1) << (gap % 32).astype(jnp.uint32), jnp.uint32(0))
+        marks = marks.at[:, gap // 32].set(marks[:, gap // 32] | bit)
+        crossed = (start != 0) & (at(side, ijk) == -start) & (other < 0)
+        return (jnp.where(may & (first < 0), gap, first), jnp.where(may, gap, last),
+                jnp.where(crossed, i, other), ijk, marks)
 
     none = jnp.full(inside.shape, -1, jnp.int32)
-    first, last, other = jax.lax.fori_loop(0, k, step, (none, none, none))
+    marks = jnp.zeros(inside.shape + (words,), jnp.uint32)
+    first, last, other, _, marks = jax.lax.fori_loop(1, k, step,
+                                                     (none, none, none, cell0, marks))
     ds = 1.0 / (k - 1)
-    # one sample more past `other`: its cell index may be a rounding off the point's
-    s1 = jnp.where(other >= 0, jnp.minimum(last, other) + 1, last + 1) * ds
-    return (jnp.clip((first - 1) * ds, 0.0, 1.0), jnp.clip(s1, 0.0, 1.0),
-            inside & (first >= 0))
+    # the gap after `other` too: its cell index may be a rounding off the point's
+    s1 = jnp.where(other >= 0, jnp.minimum(last + 1, other + 1), last + 1) * ds
+    return Span(jnp.clip(first * ds, 0.0, 1.0), jnp.clip(s1, 0.0, 1.0),
+                inside & (first >= 0), marks)
+
+
+def free_from(marks, u):
+    """The sample coordinate (s (K - 1)) where the first gap that may hold a crossing
+    starts, at or after the gap holding u ([...] float, sample coordinates; marks
+    [..., W] from `segment_span`): a value <= u when u's own gap may; inf when no gap
+    after u may. Elementwise over the leading axes."""
+    words = marks.shape[-1]
+    i0 = jnp.clip(jnp.floor(u), 0, 32 * words).astype(jnp.int32)
+    w = jnp.arange(words, dtype=jnp.int32)
+    # clear the bits of the gaps before i0 in every word
+    below = jnp.clip(i0[..., None] - 32 * w, 0, 32)
+    keep = jnp.where(below >= 32, jnp.uint32(0),
+                     ~jnp.uint32(0) << jnp.minimum(below, 31).astype(jnp.uint32))
+    m = marks & keep
+    tz = jax.lax.population_count((m & (~m + jnp.uint32(1))) - jnp.uint32(1))
+    gap = jnp.where(m != 0, 32 * w + tz.astype(jnp.int32), 2**30)
+    first = jnp.min(gap, axis=-1)
+    return jnp.where(first < 2**30, first.astype(jnp.float32), jnp.inf)
 
 
 def values_key(*trees) -> str:

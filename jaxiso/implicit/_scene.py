@@ -46,7 +46,14 @@ from ._field import (
     ray_segments,
     root_check,
 )
-from ._grid import SignGrid, build_sign_grid, segment_span, values_key
+from ._grid import (
+    SignGrid,
+    build_sign_grid,
+    free_from,
+    samples_per_segment,
+    segment_span,
+    values_key,
+)
 from ._tape_rays import intersect_rays
 from .program import long_program_tape, tape_of
 
@@ -326,12 +333,13 @@ class ImplicitSurface(_ImplicitOptions):
         _check_lanes(self.method, lanes)
         scene = jax.lax.stop_gradient(self)
         t0, t1, inside, p, D = ray_segments(rays, scene.lo, scene.hi, t_min, t_max)
+        empty = None
         if scene.sign_grid is not None:
-            t0, t1, inside, p, D = _near_possible_cells(scene, t0, t1, inside, p, D)
+            t0, t1, inside, p, D, empty = _near_possible_cells(scene, t0, t1, inside, p, D)
         g = scene.field
         if self.method in ("t-bisection", "k-bisection"):
             F = extended(g, self.arithmetic, self.rounding)
-            res = _interval_method(F, scene, p, D, inside, lanes)
+            res = _interval_method(F, scene, p, D, inside, lanes, empty)
         else:
             from . import _baselines
             res = _baselines.run(self.method, g, scene, p, D, inside, scene.eps,
@@ -387,16 +395,35 @@ def _network_like(scene) -> bool:
 
 def _near_possible_cells(scene, t0, t1, inside, p, D):
     """The ray segments cut to the part near the sign grid's possible cells (all of it
-    while delta > 0: a narrow enclosure is accepted there without holding an isovalue)."""
-    s0, s1, near = segment_span(scene.sign_grid, scene.lo, scene.hi, scene.isovalues, p, D,
-                                inside)
+    while delta > 0: a narrow enclosure is accepted there without holding an isovalue),
+    and the stretches of them that the grid shows empty: (ahead, aux) for the walk
+    (`_bisect.t_bisect_lanes`; none while delta > 0)."""
+    span = segment_span(scene.sign_grid, scene.lo, scene.hi, scene.isovalues, p, D, inside)
     off = scene.delta > 0
-    s0 = jnp.where(off, 0.0, s0)
-    s1 = jnp.where(off, 1.0, s1)
-    inside = jnp.where(off, inside, near)
+    s0 = jnp.where(off, 0.0, span.s0)
+    s1 = jnp.where(off, 1.0, span.s1)
+    inside = jnp.where(off, inside, span.inside)
     length = t1 - t0
+    # the walk's s in [0, 1] is the span's; the marks count gaps of the whole segment
+    gaps = samples_per_segment(scene.sign_grid) - 1
+    u0, du = s0 * gaps, (s1 - s0) * gaps
+    marks = jnp.where(off, ~jnp.uint32(0), span.marks)
     return (t0 + s0 * length, t0 + s1 * length, inside, p + s0[:, None] * D,
-            D * (s1 - s0)[:, None])
+            D * (s1 - s0)[:, None], (_grid_empty_until, (marks, u0, du)))
+
+
+# The walk's position in the grid's sample coordinates is rounded (and so are the span's
+# ends and the cut segment): the stretch it leaps is shortened by this many samples
+_EMPTY_MARGIN = 1e-3
+
+
+def _grid_empty_until(aux, s):
+    """``ahead`` of the walk from a sign grid: the end of the empty stretch from s on
+    (s itself or less where s's gap may hold a crossing; inf past the last one)."""
+    marks, u0, du = aux
+    u = u0 + s * du
+    free = free_from(marks, u - _EMPTY_MARGIN) - _EMPTY_MARGIN
+    return jnp.where(du > 0, (free - u0) / jnp.where(du > 0, du, 1.0), s)
 
 
 def _method_options(scene):
@@ -414,7 +441,7 @@ def _check_lanes(method, lanes):
                          "packets: pass plan=jaxiso.Plan(tile=...) without lanes")
 
 
-def _interval_method(F, scene, p, D, inside, lanes=None):
+def _interval_method(F, scene, p, D, inside, lanes=None, empty=None):
     tol = scene.delta
 
     def test(p, D, s0, s1):
@@ -426,18 +453,20 @@ def _interval_method(F, scene, p, D, inside, lanes=None):
     verify = root_check(scene.field, scene.w, scene.params, scene.isovalues, scene.verify)
     heavy = lanes is not None and _is_heavy(scene.f, scene.field, scene.params)
     return run_bisection(scene.method, test, p, D, inside, scene.eps, scene.max_steps,
-                         lanes, verify, heavy)
+                         lanes, verify, heavy, empty)
 
 
 def run_bisection(method, test, p, D, inside, eps, max_steps=None, lanes=None, verify=None,
-                  heavy=False):
+                  heavy=False, empty=None):
     """Drive t- or K-bisection over a packet with a box test ``test(p, D, s0, s1)`` and
     an optional root check ``verify(p, D, s0, s1)`` (`root_check`). `heavy` (a costly
     function, e.g. a network) changes two things on lanes: the walks start at the depth
     `_bisect.start_depth` measures (on the catalogue at 512^2 that gained nothing clear
     and cost 0.4-1.4 s of compile), and the narrowest lane phase is 64 wide, not 32
     (every phase compiles the walk again: on the networks at 128^2 the 32-lane phase cost
-    1.3-1.4 s of first call and saved 1-2% of the run)."""
+    1.3-1.4 s of first call and saved 1-2% of the run). `empty`: None or (ahead, aux),
+    stretches of the rays that hold no root, which t-bisection's walks leap
+    (`_bisect.t_bisect_lanes`; K-bisection's shared pieces do not)."""
     length = jnp.linalg.norm(D, axis=-1)
     d_max = _bisect.depth_for(length, eps)
     if max_steps is None:
@@ -446,22 +475,27 @@ def run_bisection(method, test, p, D, inside, eps, max_steps=None, lanes=None, v
         max_steps = 256 * _bisect.MAX_DEPTH * (8 if method == "k-bisection" else 1)
     if method == "t-bisection" and lanes is not None:
         d_start = _bisect.start_depth(test, p, D, d_max, inside) if heavy else 0
+        ahead, aux = (None, None) if empty is None else empty
         return _bisect.t_bisect_lanes(test, p, D, d_max, inside, lanes, max_steps, verify,
-                                      d_start, min_width=64 if heavy else 32)
+                                      d_start, min_width=64 if heavy else 32, ahead=ahead,
+                                      aux=aux)
     if method == "t-bisection":
-        return _t_bisection(test, p, D, d_max, inside, max_steps, verify)
+        return _t_bisection(test, p, D, d_max, inside, max_steps, verify, empty)
     if method == "k-bisection":
         return _k_bisection(test, p, D, d_max, inside, length, max_steps, verify)
     raise ValueError(f"unknown bisection method {method!r}")
 
 
-def _t_bisection(test, p, D, d_max, inside, max_steps, verify):
+def _t_bisection(test, p, D, d_max, inside, max_steps, verify, empty=None):
     """Per-ray t-bisection under vmap (one batched loop per packet)."""
-    def one(p, D, d_max, active):
+    ahead, aux = (None, None) if empty is None else empty
+
+    def one(p, D, d_max, active, aux):
         check = None if verify is None else functools.partial(verify, p, D)
+        leap = None if ahead is None else functools.partial(ahead, aux)
         return _bisect.t_bisect(functools.partial(test, p, D), d_max, active, max_steps,
-                                check)
-    return jax.vmap(one)(p, D, d_max, inside)
+                                check, leap)
+    return jax.vmap(one)(p, D, d_max, inside, aux)
 
 
 def _k_bisection(test, p, D, d_max, inside, length, max_steps, verify):
