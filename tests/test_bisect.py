@@ -404,3 +404,48 @@ def test_leap_lands_on_the_largest_piece_in_the_stretch(seed):
             assert (k2[i], d2[i]) == (k[i], d[i]), i
         else:
             assert (k2[i], d2[i]) == best, (i, k[i], d[i], float(s_free[i]), d0[i], d_max[i])
+
+
+def _root_parts(p, D, s0, s1, parts=None):
+    """Verification for `_floored_oracle` by parts: the root lies in [s0, s1], and in
+    which of `parts` equal parts."""
+    root = p[..., 0]
+    inside = (root >= s0) & (root <= s1)
+    if parts is None:
+        return inside
+    part = jnp.clip(jnp.floor((root - s0) / (s1 - s0) * parts), 0, parts - 1)
+    return inside, jnp.where(inside, part.astype(jnp.int32), -1)
+
+
+@pytest.mark.parametrize("levels", [1, 3])
+def test_walks_verify_levels_above_d_max_and_hit_the_root_part(levels):
+    """With verify_levels, walks accept pieces that many levels above d_max and the hit is
+    the part at d_max that holds the root: the same hits as the walk to d_max, the hit
+    piece holds the root, in fewer steps (the enclosure floor makes dozens of d_max
+    pieces before each root possible); on lanes, in one loop and per ray alike."""
+    p, D, d_max, active = _oracle_rays()
+    d_max = np.full_like(d_max, 12)
+    D[:, 2] = 0.01
+    max_steps = 256 * _bisect.MAX_DEPTH
+    ref = stack_bisect(lambda s0, s1: _floored_oracle(p, D, s0, s1), d_max, active,
+                       max_steps, verify=lambda s0, s1: _root_inside(p, D, s0, s1))
+    rooted = active & np.isfinite(p[:, 0])
+    np.testing.assert_array_equal(ref[1], rooted)
+
+    def packet(p, D, d_max, active):
+        def one(p, D, d_max, active):
+            return _bisect.t_bisect(functools.partial(_floored_oracle, p, D), d_max, active,
+                                    max_steps, functools.partial(_root_parts, p, D),
+                                    verify_levels=levels)
+        return jax.vmap(one)(p, D, d_max, active)
+
+    runs = {lanes: jax.jit(lambda p, D, d_max, active, lanes=lanes: _bisect.t_bisect_lanes(
+        _floored_oracle, p, D, d_max, active, lanes, max_steps, _root_parts,
+        verify_levels=levels)) for lanes in (32, None)}
+    runs["packet"] = jax.jit(packet)
+    for path, run in runs.items():
+        res = run(p, D, d_max, active)
+        hit, s, steps = (np.asarray(a) for a in (res.hit, res.s, res.steps))
+        np.testing.assert_array_equal(hit, rooted, err_msg=str(path))
+        assert np.all(np.abs(s[rooted] - p[rooted, 0]) <= 2.0**-13 + 1e-7), path
+        assert steps[rooted].mean() < 0.7 * ref[2][rooted].mean(), path

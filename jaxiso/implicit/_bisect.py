@@ -167,24 +167,41 @@ def _walking(max_steps: int):
     return lambda st: st["going"] & (st["steps"] < max_steps)
 
 
+def first_verified(verify, k, d, levels: int, rays=()):
+    """(ok, k, d): where ``verify(*rays, s0, s1)`` establishes a root in the piece (k, d).
+    levels 0: (k, d) itself. Otherwise verify is called with ``parts=2^levels`` and
+    returns (ok, part): the hit is that part of the piece (its piece at depth d +
+    levels), or the whole piece where part is -1 (a root found another way than in a
+    part). ok False: no root (k, d unchanged). k, d: [...]; rays: per-ray arrays [..., *]
+    that verify takes before the piece."""
+    if levels == 0:
+        return verify(*rays, *piece(k, d)), k, d
+    ok, part = verify(*rays, *piece(k, d), parts=2**levels)
+    sub = part >= 0
+    return (ok, jnp.where(ok & sub, (k << levels) + part, k),
+            jnp.where(ok & sub, d + levels, d))
+
+
 def _verified_rounds(run, verify, state, max_steps: int):
     """Run the walk (`run`: state -> state, which steps a going ray only while its step
     count is below max_steps), then check each ray's accepted piece with `verify` (state
-    -> bool, True: a root is established there); a ray whose piece fails moves on to the
-    next piece and walks again, until no ray does or its steps reach max_steps (then it
-    reports no hit). Every walk costs each ray it moves at least a step, so max_steps
-    bounds the rounds."""
+    -> (ok, k, d): ok where a root is established there, in the piece (k, d) it names,
+    `first_verified`); a ray whose piece fails moves on to the next piece and walks
+    again, until no ray does or its steps reach max_steps (then it reports no hit).
+    Every walk costs each ray it moves at least a step, so max_steps bounds the rounds."""
     if verify is None:
         return run(state)
 
     def body(carry):
         r, st = carry
         out = run(st)
-        bad = out["hit"] & ~verify(out)
+        ok, k_hit, d_hit = verify(out)
+        bad = out["hit"] & ~ok
         no = jnp.zeros_like(bad)
         k_next, d_next, end = advance(out["k"], out["d"], no, no, out["d0"])
-        return r + 1, dict(out, k=jnp.where(bad, k_next, out["k"]),
-                           d=jnp.where(bad, d_next, out["d"]), hit=out["hit"] & ~bad,
+        k = jnp.where(bad, k_next, jnp.where(out["hit"], k_hit, out["k"]))
+        d = jnp.where(bad, d_next, jnp.where(out["hit"], d_hit, out["d"]))
+        return r + 1, dict(out, k=k, d=d, hit=out["hit"] & ~bad,
                            going=bad & ~end & (out["steps"] < max_steps))
 
     def cond(carry):
@@ -195,7 +212,8 @@ def _verified_rounds(run, verify, state, max_steps: int):
     return out
 
 
-def t_bisect(test, d_max, active, max_steps: int, verify=None, ahead=None) -> Result:
+def t_bisect(test, d_max, active, max_steps: int, verify=None, ahead=None,
+             verify_levels: int = 0) -> Result:
     """Stackless bisection of one ray's segment (call under vmap for a packet: one
     batched loop, until the packet's slowest ray is done).
 
@@ -208,8 +226,13 @@ def t_bisect(test, d_max, active, max_steps: int, verify=None, ahead=None) -> Re
         the seed's rule) or ``verify(s0, s1) -> bool``: such a piece is the hit only when
         verify establishes a root in it; otherwise the walk goes on past it.
       ahead: None or ``ahead(s) -> s_free``: [s, s_free) holds no root (`_t_step`).
+      verify_levels: with verify, the walk accepts pieces verify_levels above d_max, and
+        verify (called with ``parts=2^verify_levels``) finds the hit among their pieces
+        at d_max (point evaluations in place of the enclosures' last levels near a
+        surface, `first_verified`).
     """
     leap_past = None if ahead is None else (lambda st, s: ahead(s))
+    d_walk = _walk_depth(d_max, verify, verify_levels)
 
     def run(st):
         return run_rays(functools.partial(_t_step, test, max_steps=max_steps,
@@ -217,8 +240,16 @@ def t_bisect(test, d_max, active, max_steps: int, verify=None, ahead=None) -> Re
                         _walking(max_steps), st, _T_KEYS,
                         max_steps=max_steps, steps="steps")
 
-    check = None if verify is None else (lambda st: verify(*piece(st["k"], st["d"])))
-    return _t_result(_verified_rounds(run, check, _t_start(d_max, active), max_steps))
+    check = None if verify is None else (
+        lambda st: first_verified(verify, st["k"], st["d"], verify_levels))
+    return _t_result(_verified_rounds(run, check, _t_start(d_walk, active), max_steps))
+
+
+def _walk_depth(d_max, verify, levels: int):
+    """The depth walks accept at: verify_levels above d_max (at least 0) with verify."""
+    if verify is None or levels == 0:
+        return d_max
+    return jnp.maximum(jnp.asarray(d_max, jnp.int32) - levels, 0)
 
 
 def k_bisect(test, k_enter, k_exit, d_max, active, max_steps: int, verify=None) -> Result:
@@ -330,7 +361,7 @@ def start_depth(test, p, D, d_max, active):
 
 def t_bisect_lanes(test, p, D, d_max, active, lanes: int | None, max_steps: int,
                    verify=None, d_start=0, min_width: int = 32, ahead=None,
-                   aux=None) -> Result:
+                   aux=None, verify_levels: int = 0) -> Result:
     """t-bisection of a batch of rays [N] on `lanes` persistent lanes with refill
     (`jaxiso._lanes.run_rays`; rays that miss the domain never enter the queue), or, with
     lanes None, one loop over the batch. Same per-ray step and results as `t_bisect`.
@@ -354,8 +385,10 @@ def t_bisect_lanes(test, p, D, d_max, active, lanes: int | None, max_steps: int,
       min_width: static width of the narrowest lane phase (`jaxiso._lanes.run_lanes`).
       ahead, aux: None, or ``ahead(aux, s) -> s_free`` and its per-ray data (a pytree of
         [N, ...] leaves): the ray's stretch [s, s_free) holds no root (`_t_step`).
+      verify_levels: as in `t_bisect`.
     """
     leap_past = None if ahead is None else (lambda st, s: ahead(st["aux"], s))
+    d_max = _walk_depth(d_max, verify, verify_levels)
 
     def step(st):
         return _t_step(lambda s0, s1: test(st["p"], st["D"], s0, s1), st, max_steps,
@@ -369,7 +402,8 @@ def t_bisect_lanes(test, p, D, d_max, active, lanes: int | None, max_steps: int,
         state["sure"] = jnp.zeros_like(state["hit"])
         out = run_rays(step, lambda s: s["going"] | (s["hit"] & ~s["sure"]), state,
                        _T_KEYS + ("sure",), max_steps=max_steps, steps="steps", lanes=lanes,
-                       settle=functools.partial(_settle_hits, verify), min_width=min_width)
+                       settle=functools.partial(_settle_hits, verify, verify_levels),
+                       min_width=min_width)
         # a lane that ran out of steps while holding a piece reports no hit
         return _t_result(dict(out, hit=out["hit"] & out["sure"]))
 
@@ -379,14 +413,15 @@ def t_bisect_lanes(test, p, D, d_max, active, lanes: int | None, max_steps: int,
         return dict(out, p=p, D=D) if ahead is None else dict(out, p=p, D=D, aux=aux)
 
     check = None if verify is None else (
-        lambda st: verify(p, D, *piece(st["k"], st["d"])))
+        lambda st: first_verified(verify, st["k"], st["d"], verify_levels, (p, D)))
     return _t_result(_verified_rounds(run, check, state, max_steps))
 
 
-def _settle_hits(verify, st, live):
+def _settle_hits(verify, levels, st, live):
     """Verify the pieces that lanes hold (accepted, not yet verified), gathered in chunks
-    of `_settle_width`: a verified piece is the lane's hit; a failed one moves the lane's
-    walk on to the next piece."""
+    of `_settle_width`: a verified piece (its first verified piece `levels` deeper,
+    `first_verified`) is the lane's hit; a failed one moves the lane's walk on to the
+    next piece."""
     n = live.shape[0]
     width = _settle_width(n)
 
@@ -395,7 +430,7 @@ def _settle_hits(verify, st, live):
         lane = jnp.nonzero(todo, size=width, fill_value=n)[0]  # n: no lane
         at = jnp.minimum(lane, n - 1)
         k, d = st["k"][at], st["d"][at]
-        ok = verify(st["p"][at], st["D"][at], *piece(k, d))
+        ok, k_hit, d_hit = first_verified(verify, k, d, levels, (st["p"][at], st["D"][at]))
         no = jnp.zeros_like(ok)
         k_next, d_next, end = advance(k, d, no, no, st["d0"][at])
 
@@ -403,8 +438,9 @@ def _settle_hits(verify, st, live):
             return a.at[lane].set(v, mode="drop")
 
         st = dict(st, sure=put(st["sure"], ok), hit=put(st["hit"], ok),
-                  k=put(st["k"], jnp.where(ok, k, k_next)),
-                  d=put(st["d"], jnp.where(ok, d, d_next)), going=put(st["going"], ~ok & ~end))
+                  k=put(st["k"], jnp.where(ok, k_hit, k_next)),
+                  d=put(st["d"], jnp.where(ok, d_hit, d_next)),
+                  going=put(st["going"], ~ok & ~end))
         return st, put(todo, no)
 
     held = live & st["hit"] & ~st["sure"]

@@ -221,17 +221,31 @@ def root_check(g, w, params, isovalues, policy: str):
         q = p + D * s[..., None]
         return q[..., 0], q[..., 1], q[..., 2]
 
-    def verify(p, D, s0, s1):
-        # a piece at an end of the segment looks half a piece past it: a root on the
+    def verify(p, D, s0, s1, parts=None):
+        """bool [...]; with `parts` (a power of two), the piece cut into that many equal
+        parts: (ok, part) [...], part the first with a sign change, -1 where only the
+        whole piece touches (the parts are not tested for touching)."""
+        n = 1 if parts is None else parts
+        # a piece at an end of the segment looks half a part past it: a root on the
         # box's face (a step of floor exactly there, with the entry point rounded
         # inside) shows whichever side rounding puts it
-        half = 0.5 * (s1 - s0)
-        f0 = value(*at(p, D, jnp.where(s0 <= 0, s0 - half, s0)), w, params)[..., None] - iso
-        f1 = value(*at(p, D, jnp.where(s1 >= 1, s1 + half, s1)), w, params)[..., None] - iso
-        ok = jnp.any(f0 * f1 <= 0, axis=-1)  # NaN compares False: no root there
-        if policy == "sign":
-            return ok
-        return ok | _only_where(~ok, touching, p, D, s0, s1)
+        half = 0.5 * (s1 - s0) / n
+        frac = jnp.arange(n + 1, dtype=jnp.float32) / n
+        s = s0[..., None] + (s1 - s0)[..., None] * frac  # exact for dyadic pieces
+        s = s.at[..., 0].set(jnp.where(s0 <= 0, s0 - half, s0))
+        s = s.at[..., n].set(jnp.where(s1 >= 1, s1 + half, s1))
+        q = p[..., None, :] + D[..., None, :] * s[..., None]
+        f = value(q[..., 0], q[..., 1], q[..., 2], w, params)[..., None] - iso
+        # NaN compares False: no root there
+        change = jnp.any(f[..., :-1, :] * f[..., 1:, :] <= 0, axis=-1)  # [..., n]
+        ok = jnp.any(change, axis=-1)
+        if policy == "sign+distance":
+            touched = _only_where(~ok, touching, p, D, s0, s1)
+        else:
+            touched = jnp.zeros_like(ok)
+        if parts is None:
+            return ok | touched
+        return ok | touched, jnp.where(ok, jnp.argmax(change, axis=-1), -1)
 
     def touching(p, D, s0, s1):
         m = p + D * (0.5 * (s0 + s1))[..., None]

@@ -451,13 +451,19 @@ def _interval_method(F, scene, p, D, inside, lanes=None, empty=None):
         return _bisect.BoxTest(possible, finite, (r.hi - r.lo) < tol)
 
     verify = root_check(scene.field, scene.w, scene.params, scene.isovalues, scene.verify)
-    heavy = lanes is not None and _is_heavy(scene.f, scene.field, scene.params)
+    heavy = _is_heavy(scene.f, scene.field, scene.params)
     return run_bisection(scene.method, test, p, D, inside, scene.eps, scene.max_steps,
-                         lanes, verify, heavy, empty)
+                         lanes, verify, lanes is not None and heavy, empty,
+                         HEAVY_VERIFY_LEVELS if heavy else 0)
+
+
+# Heavy functions' walks stop this many levels above d_max, and verification finds the hit
+# among the piece's 2^levels pieces at d_max by point evaluations (`_bisect.first_verified`)
+HEAVY_VERIFY_LEVELS = 2
 
 
 def run_bisection(method, test, p, D, inside, eps, max_steps=None, lanes=None, verify=None,
-                  heavy=False, empty=None):
+                  heavy=False, empty=None, verify_levels=0):
     """Drive t- or K-bisection over a packet with a box test ``test(p, D, s0, s1)`` and
     an optional root check ``verify(p, D, s0, s1)`` (`root_check`). `heavy` (a costly
     function, e.g. a network) changes two things on lanes: the walks start at the depth
@@ -466,7 +472,9 @@ def run_bisection(method, test, p, D, inside, eps, max_steps=None, lanes=None, v
     (every phase compiles the walk again: on the networks at 128^2 the 32-lane phase cost
     1.3-1.4 s of first call and saved 1-2% of the run). `empty`: None or (ahead, aux),
     stretches of the rays that hold no root, which t-bisection's walks leap
-    (`_bisect.t_bisect_lanes`; K-bisection's shared pieces do not)."""
+    (`_bisect.t_bisect_lanes`; K-bisection's shared pieces do not). `verify_levels`:
+    t-bisection's walks with verify accept pieces that many levels above d_max and take
+    the first verified of their pieces at d_max (`_bisect.t_bisect`)."""
     length = jnp.linalg.norm(D, axis=-1)
     d_max = _bisect.depth_for(length, eps)
     if max_steps is None:
@@ -478,15 +486,17 @@ def run_bisection(method, test, p, D, inside, eps, max_steps=None, lanes=None, v
         ahead, aux = (None, None) if empty is None else empty
         return _bisect.t_bisect_lanes(test, p, D, d_max, inside, lanes, max_steps, verify,
                                       d_start, min_width=64 if heavy else 32, ahead=ahead,
-                                      aux=aux)
+                                      aux=aux, verify_levels=verify_levels)
     if method == "t-bisection":
-        return _t_bisection(test, p, D, d_max, inside, max_steps, verify, empty)
+        return _t_bisection(test, p, D, d_max, inside, max_steps, verify, empty,
+                            verify_levels)
     if method == "k-bisection":
         return _k_bisection(test, p, D, d_max, inside, length, max_steps, verify)
     raise ValueError(f"unknown bisection method {method!r}")
 
 
-def _t_bisection(test, p, D, d_max, inside, max_steps, verify, empty=None):
+def _t_bisection(test, p, D, d_max, inside, max_steps, verify, empty=None,
+                 verify_levels=0):
     """Per-ray t-bisection under vmap (one batched loop per packet)."""
     ahead, aux = (None, None) if empty is None else empty
 
@@ -494,7 +504,7 @@ def _t_bisection(test, p, D, d_max, inside, max_steps, verify, empty=None):
         check = None if verify is None else functools.partial(verify, p, D)
         leap = None if ahead is None else functools.partial(ahead, aux)
         return _bisect.t_bisect(functools.partial(test, p, D), d_max, active, max_steps,
-                                check, leap)
+                                check, leap, verify_levels)
     return jax.vmap(one)(p, D, d_max, inside, aux)
 
 
