@@ -95,9 +95,9 @@ def leap(k, d, s_free, d0, d_max):
     """The walk's next piece (k, d) moved on past [its start, s_free), a stretch known to
     hold no root (`t_bisect_lanes`' `ahead`): onto the largest piece (depth d0 to d_max)
     that starts after its start and at most at s_free (at that depth the last such);
-    (k, d) itself when there is none.
-    From there the stackless walk covers the rest of [0, 1] as usual. Elementwise;
-    returns (k, d, past): past where s_free >= 1 (the walk is over)."""
+    (k, d) itself when there is none. From there the stackless walk covers the rest of
+    [0, 1] as usual. Elementwise; returns (k, d, past): past where s_free >= 1 (the walk
+    is over)."""
     top = MAX_DEPTH
     start = k << (top - d)  # the piece's start in units of 2^-MAX_DEPTH (exact)
     step = top - d_max  # no piece below depth d_max

@@ -210,16 +210,16 @@ def root_check(g, w, params, isovalues, policy: str):
     L of it at first order, ``|g(m) - iso| <= L |grad g(m)|``, where it is singular.
     Surfaces that touch a level without crossing it (Steiner's whiskers, where g ~ a r^2
     and |g| / |grad g| = r / 2) are found, while neither a loose enclosure far from the
-    surface nor a ray grazing a regular surface is taken for a hit."""
+    surface nor a ray grazing a regular surface is taken for a hit.
+
+    ``verify(p, D, s0, s1, parts=n)`` (n a power of two) cuts the piece into n equal
+    parts and returns (ok, part): the first part whose ends' signs differ, or -1 where
+    the whole piece passes the touching test only (`_bisect.first_verified`)."""
     if policy == "none":
         return None
     iso = jnp.asarray(isovalues)
     value = on_points(g)
     value_grad = on_points(jax.value_and_grad(g, argnums=(0, 1, 2)))
-
-    def at(p, D, s):
-        q = p + D * s[..., None]
-        return q[..., 0], q[..., 1], q[..., 2]
 
     def verify(p, D, s0, s1, parts=None):
         """bool [...]; with `parts` (a power of two), the piece cut into that many equal
