@@ -241,6 +241,47 @@ def test_touching_test_tells_double_zeros_from_simple_ones():
     assert not check(kinked, np.stack([1e-3 + r, zero, zero], -1)).any()
 
 
+def _slab(x, y, z):
+    """A slab 2e-4 thick about x = 0.1: thinner than a piece at the eps below."""
+    return jnp.abs(x - 0.1) - 1e-4
+
+
+def test_features_thinner_than_a_piece_are_found():
+    """A slab 2e-4 thick, crossed by rays along x whose starts are shifted so that the
+    final pieces' ends (<= 2^-10 apart) fall anywhere about it: the ends rarely straddle it
+    (no sign change between them), the closer sampling of a piece without one finds it
+    on every ray under both verifying policies, at t within a piece of the face."""
+    box = dict(lo=(-1.0,) * 3, hi=(1.0,) * 3, eps=2.0**-10, arithmetic="interval")
+    n = 64
+    shift = np.linspace(0.0, 0.02, n)
+    o = np.stack([-2.0 - shift, np.linspace(-0.5, 0.5, n), np.full(n, 0.3)], -1)
+    d = np.tile([1.0, 0.0, 0.0], (n, 1))
+    rays = ji.Rays(jnp.asarray(o, jnp.float32), jnp.asarray(d, jnp.float32))
+    face = 0.1 - 1e-4 - o[:, 0]
+    for verify in ("sign", "sign+distance"):
+        h = ji.intersect(ji.ImplicitSurface(_slab, verify=verify, **box), rays)
+        assert np.asarray(h.hit).all(), verify
+        assert np.abs(np.asarray(h.t) - face).max() <= 2.0**-10, verify
+
+
+def test_verify_parts_find_a_thin_feature_between_their_points():
+    """verify(parts=4) on pieces of length 0.0024 (parts 6e-4) of rays along x, with the
+    slab (2e-4 thick) inside part 0, 1 or 3 away from the parts' ends: ok, and the part
+    named is the slab's; a piece without it: not ok."""
+    from jaxiso.implicit._field import as_field, root_check
+
+    verify = root_check(as_field(_slab, False), 0.0, (), jnp.zeros(1), "sign")
+    part_len = 6e-4
+    start = 0.1 - part_len * np.asarray([0.55, 1.5, 3.45, -100.0])
+    # the piece is [0.25, 0.75] of a segment twice its length (no look past its ends)
+    p = np.stack([start - 2 * part_len, np.zeros(4), np.zeros(4)], -1)
+    D = np.tile([8 * part_len, 0.0, 0.0], (4, 1))
+    ok, part = verify(jnp.asarray(p, jnp.float32), jnp.asarray(D, jnp.float32),
+                      jnp.full(4, 0.25), jnp.full(4, 0.75), parts=4)
+    assert np.asarray(ok).tolist() == [True, True, True, False]
+    assert np.asarray(part)[:3].tolist() == [0, 1, 3]
+
+
 def test_verify_is_validated():
     with pytest.raises(ValueError, match="verify"):
         ji.ImplicitSurface(_line, (-1,) * 3, (1,) * 3, verify="maybe")

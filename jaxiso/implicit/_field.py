@@ -9,6 +9,7 @@ symbol (the seed's float3 RAA with n = 1), which keeps x, y and z exactly correl
 
 from __future__ import annotations
 
+import functools
 import inspect
 
 import jax
@@ -205,7 +206,11 @@ def root_check(g, w, params, isovalues, policy: str):
 
     "sign": g - iso changes sign between the piece's ends (point evaluation; a root by
     the intermediate value theorem; the first and last piece of a segment look half a
-    piece beyond it, so a root on the box's face is kept). "sign+distance" also accepts
+    piece beyond it, so a root on the box's face is kept), or, where they do not, between
+    two of _DIP + 1 points spread over the piece (over the two parts about the point
+    nearest a level, with `parts`): a feature thinner than the piece whose enclosure
+    holds a level (birdcage_occ's bars: 6e-4 against pieces of 1e-3) is kept, and its
+    root is proven like any other. "sign+distance" also accepts
     a piece whose midpoint m touches the level set (`touches`): within the piece's length
     L of it at first order, ``|g(m) - iso| <= L |grad g(m)|``, where it is singular.
     Surfaces that touch a level without crossing it (Steiner's whiskers, where g ~ a r^2
@@ -213,8 +218,9 @@ def root_check(g, w, params, isovalues, policy: str):
     surface nor a ray grazing a regular surface is taken for a hit.
 
     ``verify(p, D, s0, s1, parts=n)`` (n a power of two) cuts the piece into n equal
-    parts and returns (ok, part): the first part whose ends' signs differ, or -1 where
-    the whole piece passes the touching test only (`_bisect.first_verified`)."""
+    parts and returns (ok, part): the first part whose ends' signs differ (the part
+    holding the closer points' sign change where none does), or -1 where the whole
+    piece passes the touching test only (`_bisect.first_verified`)."""
     if policy == "none":
         return None
     iso = jnp.asarray(isovalues)
@@ -239,13 +245,38 @@ def root_check(g, w, params, isovalues, policy: str):
         # NaN compares False: no root there
         change = jnp.any(f[..., :-1, :] * f[..., 1:, :] <= 0, axis=-1)  # [..., n]
         ok = jnp.any(change, axis=-1)
-        if policy == "sign+distance":
-            touched = _only_where(~ok, touching, p, D, s0, s1)
-        else:
-            touched = jnp.zeros_like(ok)
+        part = jnp.argmax(change, axis=-1)
+        # no sign change at the parts' ends: look closer around the point nearest a level
+        # (a feature thinner than a part, e.g. birdcage_occ's bars, falls between them)
+        lowest = jnp.argmin(jnp.min(jnp.abs(f), axis=-1), axis=-1)
+        first = jnp.clip(lowest - 1, 0, max(n - 2, 0))
+        last = jnp.minimum(first + 2, n)
+        at = functools.partial(jnp.take_along_axis, s, axis=-1)
+        dipped, sub, touched = _only_where(~ok, closer, p, D, s0, s1,
+                                           at(first[..., None])[..., 0],
+                                           at(last[..., None])[..., 0])
+        part = jnp.where(ok, part, first + (sub * (last - first)) // _DIP)
+        ok = ok | dipped
         if parts is None:
             return ok | touched
-        return ok | touched, jnp.where(ok, jnp.argmax(change, axis=-1), -1)
+        return ok | touched, jnp.where(ok, part, -1)
+
+    def closer(p, D, s0, s1, a, b):
+        """A piece without a sign change at its parts' ends, looked at closer: `dip` on
+        [a, b], and the touching test (policy "sign+distance") on the piece."""
+        dipped, sub = dip(p, D, a, b)
+        touched = (touching(p, D, s0, s1) if policy == "sign+distance"
+                   else jnp.zeros_like(dipped))
+        return dipped, sub, touched
+
+    def dip(p, D, a, b):
+        """(ok, sub): the first of _DIP equal parts of [a, b] whose ends' signs differ."""
+        frac = jnp.arange(_DIP + 1, dtype=jnp.float32) / _DIP
+        s = a[..., None] + (b - a)[..., None] * frac
+        q = p[..., None, :] + D[..., None, :] * s[..., None]
+        f = value(q[..., 0], q[..., 1], q[..., 2], w, params)[..., None] - iso
+        change = jnp.any(f[..., :-1, :] * f[..., 1:, :] <= 0, axis=-1)
+        return jnp.any(change, axis=-1), jnp.argmax(change, axis=-1)
 
     def touching(p, D, s0, s1):
         m = p + D * (0.5 * (s0 + s1))[..., None]
@@ -261,15 +292,22 @@ def root_check(g, w, params, isovalues, policy: str):
     return verify
 
 
-def _only_where(need, test, p, D, s0, s1):
-    """test(p, D, s0, s1) where `need` [...] holds, False elsewhere. The touching test costs
+# A piece with no sign change at its parts' ends is sampled this much finer over the two
+# parts around its point nearest a level (`root_check`)
+_DIP = 8
+
+
+def _only_where(need, test, *args):
+    """test(*args) (an array or a tuple of arrays [...]; args [..., *]) where `need` [...]
+    holds, zeros elsewhere. The touching test costs
     three gradients per piece: on a batch [W] (the lanes' verification chunks) the pieces
     that need it are gathered W / 8 at a time (birdcage_occ 128^2: a few per chunk of
     512 fail the sign test; the whole chunk's gradients cost 30% of the default call);
     elsewhere (per ray under vmap) only when some piece needs it."""
+    shapes = jax.eval_shape(test, *args)
+    none = jax.tree_util.tree_map(lambda r: jnp.zeros(r.shape, r.dtype), shapes)
     if need.ndim != 1 or need.shape[0] < 16:
-        return jax.lax.cond(jnp.any(need), test, lambda *_: jnp.zeros_like(need),
-                            p, D, s0, s1)
+        return jax.lax.cond(jnp.any(need), test, lambda *_: none, *args)
     n = need.shape[0]
     width = n // 8
 
@@ -277,11 +315,11 @@ def _only_where(need, test, p, D, s0, s1):
         out, todo = carry
         at = jnp.nonzero(todo, size=width, fill_value=n)[0]  # n: none
         i = jnp.minimum(at, n - 1)
-        res = test(p[i], D[i], s0[i], s1[i])
-        return out.at[at].set(res, mode="drop"), todo.at[at].set(False, mode="drop")
+        res = test(*(a[i] for a in args))
+        out = jax.tree_util.tree_map(lambda o, r: o.at[at].set(r, mode="drop"), out, res)
+        return out, todo.at[at].set(False, mode="drop")
 
-    return jax.lax.while_loop(lambda c: jnp.any(c[1]), some,
-                              (jnp.zeros_like(need), need))[0]
+    return jax.lax.while_loop(lambda c: jnp.any(c[1]), some, (none, need))[0]
 
 
 def point_normal(g, p, w, params, direction, stencil=None):

@@ -195,7 +195,8 @@ class ImplicitSurface(_ImplicitOptions):
       samples: point samples per ray ("sampling").
       refine_steps: point refinement iterations ("mitchell", "sampling"), None: default.
       verify: when a piece counts as a hit (t- and K-bisection). "sign+distance"
-        (default): f - iso changes sign between the piece's ends, or the piece's midpoint
+        (default): f - iso changes sign between the piece's ends (or between two of 9
+        points spread over it, so a feature thinner than a piece is kept), or its midpoint
         is within the piece's length of the level set at first order (|f - iso| <=
         length |grad f|) where the level set is singular (`_field.touches`: Newton
         converges linearly there, as to a double zero), which keeps surfaces that touch
