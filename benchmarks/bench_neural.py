@@ -35,8 +35,10 @@ the caster's step counter; its unit is in ``steps_unit``), and against the float
 reference (tests/reference_neural64.py: 4,000 samples per ray segment in the box, the
 first sign change, bisection to ~1e-9; cached in --cache, not committed): the share of
 pixels whose hit/miss agrees, false hits and missed hits, and |t - t_ref| (median, 99th
-percentile) where both hit. Above --ref-max the reference (and the comparison) covers a
-regular ref_max^2 subsample of the pixels.
+percentile) where both hit. paired_speedup (on the default row): after a network's rows,
+the default call and each peer run in turn for --repeats rounds; the median of the peer's
+time over the default's (the machine's drift falls on both alike). Above --ref-max the
+reference (and the comparison) covers a regular ref_max^2 subsample of the pixels.
 
 A row whose full run would take longer than --row-budget-s (a pilot run on a regular
 --pilot^2 subsample of the pixels, extrapolated to first call + warm-up + repeats) is
@@ -343,7 +345,7 @@ def work(hit, steps):
 
 def measure(make, rays, pilot, budget, repeats, slow_s):
     """Times one caster on rays [H, W]: returns (timing dict, (hit, t, steps) of the run,
-    "full" or "pilot").
+    the compiled call at full size, or None where the pilot stood in).
 
     With a budget and `pilot` (rays of a pixel subsample), the pilot runs first (first
     call, then one timed call); when first call + warm-up + repeats at full size, scaled
@@ -363,14 +365,33 @@ def measure(make, rays, pilot, budget, repeats, slow_s):
         if est * (2 + repeats) > budget:
             return (dict(measured=False, pixels_run=n_p, first_call_s=first, run_s=run,
                          est_run_s=est, repeats_used=1, rays_per_s=n_p / run),
-                    extract(out), "pilot")
+                    extract(out), None)
     call, extract = make(rays)
     t0 = now()
     jax.block_until_ready(call())
     first = now() - t0
     out, timing = common.time_calls(call, repeats, slow_s)
     return (dict(measured=True, pixels_run=n, first_call_s=first, **timing,
-                 rays_per_s=n / timing["run_s"]), extract(out), "full")
+                 rays_per_s=n / timing["run_s"]), extract(out), call)
+
+
+def paired_speedups(calls, base, repeats):
+    """{label: median over `repeats` rounds of (label's time / base's time)}: each round
+    calls base and every other caster once, in turn, so that the machine's drift (+-25%
+    over minutes on the 2-core CPU) falls on both sides of each ratio alike."""
+    ratios = {label: [] for label in calls if label != base}
+    for _ in range(repeats):
+        t0 = now()
+        jax.block_until_ready(calls[base]())
+        t_base = now() - t0
+        for label in ratios:
+            t0 = now()
+            jax.block_until_ready(calls[label]())
+            ratios[label].append((now() - t0) / t_base)
+    return {label: float(np.median(r)) for label, r in ratios.items()}
+
+
+DEFAULT = "jaxiso default"
 
 
 def casters(net, cfg, spelunking):
@@ -379,7 +400,7 @@ def casters(net, cfg, spelunking):
     S = user_scene(net)
     construct_s = time.perf_counter() - start
     lip = net.mlp.lipschitz
-    jx = [("jaxiso default", S, "ji.intersect(S, rays)"),
+    jx = [(DEFAULT, S, "ji.intersect(S, rays)"),
 
           ("jaxiso interval", S.replace(arithmetic="interval"),
            "ji.intersect(S.replace(arithmetic='interval'), rays)"),
@@ -447,7 +468,7 @@ def rays_section(networks, cfg, spelunking):
             # the pilot: a regular subsample of the reference's pixels
             p = common.subsample(len(idx), min(len(idx), cfg["pilot"]))
             pilot = sub_rays(rays, idx[p], idx[p]) if cfg["pilot"] < size else None
-            printed = []
+            printed, calls = [], {}
             for label, kind, desc, make, scene in casters(net, cfg, spelunking):
                 row = dict(network=net.name, size=size, label=label, kind=kind, **desc)
                 if scene is not None:
@@ -464,7 +485,9 @@ def rays_section(networks, cfg, spelunking):
                 if hasattr(make, "opts"):  # the options of the run that counted
                     row["opts"] = dict(make.opts)
                 row.update(timing, **work(hit, steps), mrays_per_s=timing["rays_per_s"] / 1e6)
-                if ran == "full":  # compare on the reference's pixels
+                if ran is not None:  # compare on the reference's pixels
+                    if kind != "jaxiso" or label == DEFAULT:
+                        calls[label] = ran
                     row.update(agreement(hit[idx][:, idx], t[idx][:, idx], t_ref))
                 else:
                     row.update(agreement(hit, t, t_ref[p][:, p]))
@@ -480,6 +503,12 @@ def rays_section(networks, cfg, spelunking):
                                 fmt(row["depth_err_p99"], ".1e")])
             print_table(["caster", "arith", "plan", "rays/s", "first s", "evals/ray",
                          "agree", "false", "missed", "depth med", "depth p99"], printed)
+            if DEFAULT in calls and len(calls) > 1 and cfg["repeats"]:
+                paired = paired_speedups(calls, DEFAULT, cfg["repeats"])
+                next(r for r in rows[::-1] if r["label"] == DEFAULT)["paired_speedup"] = paired
+                print("  the default call in turn with each peer (median of "
+                      f"{cfg['repeats']} rounds, peer's time / default's): "
+                      + ", ".join(f"{k} {v:.2f}x" for k, v in paired.items()))
     if any(not r.get("measured", True) for r in rows):
         print(f"  ~: over the row budget ({cfg['row_budget_s']:.0f} s): pilot of "
               f"{cfg['pilot']}^2 pixels, its rays/s and agreement\n")

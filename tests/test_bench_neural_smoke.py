@@ -118,12 +118,34 @@ def test_pilot_stands_in_for_a_row_over_budget():
 
     # budget 0: no pilot, first call + warm-up + repeats at full size
     timing, (hit, _, _), ran = bench.measure(make, rays(8), rays(2), 0, 3, 60.0)
-    assert ran == "full" and timing["measured"] and calls == [8] * 5
+    assert ran is not None and timing["measured"] and calls == [8] * 5  # the call
     calls.clear()
     # a budget no run can meet: the pilot's two calls only
     timing, (hit, _, _), ran = bench.measure(make, rays(8), rays(2), 1e-12, 3, 60.0)
-    assert ran == "pilot" and not timing["measured"] and calls == [2, 2]
+    assert ran is None and not timing["measured"] and calls == [2, 2]
     assert hit.shape == (2, 2) and timing["est_run_s"] == timing["run_s"] * 16
+
+
+def test_paired_speedups_time_each_peer_in_turn_with_the_base():
+    """Calls that sleep 10, 20 and 5 ms: each round runs the base once and each peer once,
+    in turn; the medians of peer / base are ~2 and ~0.5."""
+    import time
+
+    bench = load_bench()
+    order = []
+
+    def sleeper(label, seconds):
+        def call():
+            order.append(label)
+            time.sleep(seconds)
+            return np.zeros(1)
+        return call
+
+    calls = dict(base=sleeper("base", 0.01), slow=sleeper("slow", 0.02),
+                 fast=sleeper("fast", 0.005))
+    got = bench.paired_speedups(calls, "base", 3)
+    assert order == ["base", "slow", "fast"] * 3
+    assert 1.5 < got["slow"] < 3.0 and 0.3 < got["fast"] < 0.75 and "base" not in got
 
 
 @needs_data
