@@ -329,17 +329,22 @@ PILOT_DEPTH = 7
 
 
 def start_depth(test, p, D, d_max, active):
-    """The depth the walks of this batch start at, measured on a pilot of PILOT_RAYS of its
-    rays (evenly spaced among the active ones): the shallowest depth whose pieces the test
-    excludes at least half the time.
+    """The depth each walk of this batch starts at, from a pilot of PILOT_RAYS of its rays
+    (evenly spaced among the active ones): the depth at which the ray's pieces are as
+    long as the longest pieces the test excludes at least half the time.
 
     A walk from depth 0 evaluates every level above that one; on a level whose pieces
     are excluded with probability q, each piece costs 1 + 2 (1 - q) evaluations against 2
     for starting below it, so starting deeper saves while q < 1/2. Networks' affine
     enclosures exclude almost nothing on long pieces (fox: none of ~300 pieces at depths
-    0-2), the catalogue's from depth 0. The pilot costs PILOT_RAYS x 255 evaluations.
+    0-2), the catalogue's from depth 0. Whether a piece is excluded depends on its length
+    in space, not on its share of the segment, and segments cut to a sign grid's span
+    differ in length by 10-100x: the pilot's pieces (depths 0..PILOT_DEPTH) are counted by
+    their length (octaves), and each ray starts where its pieces reach the longest octave
+    excluded at least half the time (of at least PILOT_MIN pieces). The pilot costs
+    PILOT_RAYS x 255 evaluations.
 
-    Args as `t_bisect_lanes`' (test vectorised over any batch). Returns int32 [].
+    Args as `t_bisect_lanes`' (test vectorised over any batch). Returns int32 [N].
     """
     n = active.shape[0]
     count = jnp.sum(active)
@@ -353,10 +358,26 @@ def start_depth(test, p, D, d_max, active):
     r = test(p[ray_i], D[ray_i], s0, s1)
     counted = (jnp.repeat(jnp.arange(PILOT_RAYS) < count, depth.size)
                & (d_i <= d_max[ray_i]))
-    excluded = jnp.zeros(PILOT_DEPTH + 1).at[d_i].add(counted & ~r.possible)
-    pieces = jnp.zeros(PILOT_DEPTH + 1).at[d_i].add(counted)
-    good = excluded >= 0.5 * jnp.maximum(pieces, 1)
-    return jnp.where(jnp.any(good), jnp.argmax(good), PILOT_DEPTH).astype(jnp.int32)
+    length = jnp.linalg.norm(D, axis=-1)
+    # octave o holds pieces of length in [2^(o - _OCTAVE0), 2^(o + 1 - _OCTAVE0))
+    octave = jnp.floor(jnp.log2(jnp.maximum(length[ray_i] * (s1 - s0), 1e-30)))
+    o_i = jnp.clip(octave.astype(jnp.int32) + _OCTAVE0, 0, _OCTAVES - 1)
+    excluded = jnp.zeros(_OCTAVES).at[o_i].add(counted & ~r.possible)
+    pieces = jnp.zeros(_OCTAVES).at[o_i].add(counted)
+    good = (excluded >= 0.5 * pieces) & (pieces >= PILOT_MIN)
+    best = _OCTAVES - 1 - jnp.argmax(good[::-1])  # the longest good octave
+    # none good: the pilot's deepest pieces, as long as the pilot's segments' median's
+    fallback = jnp.log2(jnp.maximum(jnp.median(length[ray]), 1e-30)) - PILOT_DEPTH
+    top = jnp.where(jnp.any(good), (best + 1 - _OCTAVE0).astype(jnp.float32), fallback)
+    d = jnp.ceil(jnp.log2(jnp.maximum(length, 1e-30)) - top)
+    return jnp.clip(d, 0, d_max).astype(jnp.int32)
+
+
+# The pilot's octaves of piece length: 2^-_OCTAVE0 .. 2^(_OCTAVES - _OCTAVE0)
+_OCTAVE0 = 24
+_OCTAVES = 32
+# ... and the fewest pieces an octave needs to count
+PILOT_MIN = 16
 
 
 def t_bisect_lanes(test, p, D, d_max, active, lanes: int | None, max_steps: int,
