@@ -240,10 +240,7 @@ def root_check(g, w, params, isovalues, policy: str):
         s = s0[..., None] + (s1 - s0)[..., None] * frac  # exact for dyadic pieces
         s = s.at[..., 0].set(jnp.where(s0 <= 0, s0 - half, s0))
         s = s.at[..., n].set(jnp.where(s1 >= 1, s1 + half, s1))
-        q = p[..., None, :] + D[..., None, :] * s[..., None]
-        f = value(q[..., 0], q[..., 1], q[..., 2], w, params)[..., None] - iso
-        # NaN compares False: no root there
-        change = jnp.any(f[..., :-1, :] * f[..., 1:, :] <= 0, axis=-1)  # [..., n]
+        f, change = sign_changes(p, D, s)
         ok = jnp.any(change, axis=-1)
         part = jnp.argmax(change, axis=-1)
         # no sign change at the parts' ends: look closer around the point nearest a level
@@ -272,11 +269,15 @@ def root_check(g, w, params, isovalues, policy: str):
     def dip(p, D, a, b):
         """(ok, sub): the first of _DIP equal parts of [a, b] whose ends' signs differ."""
         frac = jnp.arange(_DIP + 1, dtype=jnp.float32) / _DIP
-        s = a[..., None] + (b - a)[..., None] * frac
+        _, change = sign_changes(p, D, a[..., None] + (b - a)[..., None] * frac)
+        return jnp.any(change, axis=-1), jnp.argmax(change, axis=-1)
+
+    def sign_changes(p, D, s):
+        """g - iso [..., m, n_iso] at the points p + D s (s [..., m]), and where it
+        changes sign between neighbours [..., m - 1] (NaN compares False: no root)."""
         q = p[..., None, :] + D[..., None, :] * s[..., None]
         f = value(q[..., 0], q[..., 1], q[..., 2], w, params)[..., None] - iso
-        change = jnp.any(f[..., :-1, :] * f[..., 1:, :] <= 0, axis=-1)
-        return jnp.any(change, axis=-1), jnp.argmax(change, axis=-1)
+        return f, jnp.any(f[..., :-1, :] * f[..., 1:, :] <= 0, axis=-1)
 
     def touching(p, D, s0, s1):
         m = p + D * (0.5 * (s0 + s1))[..., None]
@@ -299,11 +300,12 @@ _DIP = 8
 
 def _only_where(need, test, *args):
     """test(*args) (an array or a tuple of arrays [...]; args [..., *]) where `need` [...]
-    holds, zeros elsewhere. The touching test costs
-    three gradients per piece: on a batch [W] (the lanes' verification chunks) the pieces
-    that need it are gathered W / 8 at a time (birdcage_occ 128^2: a few per chunk of
-    512 fail the sign test; the whole chunk's gradients cost 30% of the default call);
-    elsewhere (per ray under vmap) only when some piece needs it."""
+    holds, zeros elsewhere. The closer look of verification (9 point evaluations and the
+    touching test's gradients) is costly per piece: on a batch [W] (the lanes'
+    verification chunks) the pieces that need it are gathered W / 8 at a time
+    (birdcage_occ 128^2: a few per chunk of 512 fail the sign test; the whole chunk's
+    gradients cost 30% of the default call); elsewhere (per ray under vmap) only when
+    some piece needs it."""
     shapes = jax.eval_shape(test, *args)
     none = jax.tree_util.tree_map(lambda r: jnp.zeros(r.shape, r.dtype), shapes)
     if need.ndim != 1 or need.shape[0] < 16:
