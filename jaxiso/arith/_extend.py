@@ -76,16 +76,24 @@ class _FreshSymbols:
     largest finite error terms of that vector become symbols of their own (a static
     block of slots per equation), so the next layer's mixing keeps their correlation
     (a zonotope, as DeepZ / Spelunking's "affine_all", with a budget): their radius is
-    unchanged, so the forms enclose the same sets when taken alone. When the budget is
-    spent, errors stay in the error term (AF1)."""
+    unchanged, so the forms enclose the same sets when taken alone. A smooth operation
+    (elu, tanh, ...: every neuron whose range is not in a linear stretch has an error)
+    takes `_SMOOTH_SHARE` times as many as a kink (relu's max, abs: only neurons whose
+    range crosses the kink have one). When the budget is spent, errors stay in the
+    error term (AF1)."""
 
     def __init__(self, first: int, end: int, per_op: int):
-        self.next, self.end, self.per_op = first, end, per_op
+        self.first, self.next, self.end, self.per_op = first, first, end, per_op
 
-    def absorb(self, out):
+    @property
+    def handed_out(self) -> int:
+        return self.next - self.first
+
+    def absorb(self, out, smooth: bool):
         if not (isinstance(out, Affine) and np.ndim(out.center) == 1):
             return out
-        k = min(self.per_op, int(np.shape(out.center)[0]), self.end - self.next)
+        want = self.per_op * (_SMOOTH_SHARE if smooth else 1)
+        k = min(want, int(np.shape(out.center)[0]), self.end - self.next)
         if k <= 0:
             return out
         base, self.next = self.next, self.next + k
@@ -95,6 +103,17 @@ class _FreshSymbols:
         dev = out.dev.at[:, base:base + k].add(jnp.where(chosen, vals[None, :], 0.0))
         err = jnp.where(jnp.any(chosen, axis=1) & finite, 0.0, out.err)
         return dataclasses.replace(out, dev=dev, err=err)
+
+
+# A smooth operation's share of fresh symbols against a kink's. The sign grid of bunny
+# (8 x 64 elu) at 8 symbols per operation left 14.5% of a 64^3 grid possible where
+# sampling finds 3.0%; 16 per elu: 6.5%, in the same construction time (its tighter
+# coarse levels test fewer cells). relu networks (fox, hammer, birdcage_occ) gained
+# nothing from 16 per max (1.9 -> 1.7%, 8.3 -> 8.2%) and took up to 60% longer.
+# benchmarks/NOTES.md, session 16.
+_SMOOTH_SHARE = 2
+# kinks: piecewise linear operations, exact where an operand's sign is known
+_KINKS = frozenset({"max", "min", "abs", "select_n"})
 
 
 def extend(f: Callable, arithmetic: str = "interval", rounding: str = "fast",
@@ -112,10 +131,12 @@ def extend(f: Callable, arithmetic: str = "interval", rounding: str = "fast",
         (and XLA's subnormal flushing), so enclosures hold against exact arithmetic.
       n_symbols: affine only: number of noise symbols (default: one per Interval
         coordinate, in argument order).
-      fresh_symbols: affine only: this many more symbols for the error terms of
-        nonlinear vector operations (`fresh_per_op` per operation, largest first; see
+      fresh_symbols: affine only: up to this many more symbols for the error terms of
+        nonlinear vector operations (`fresh_per_op` per kink such as relu's max, twice
+        that per smooth operation such as elu or tanh, largest errors first; see
         `_FreshSymbols`): tighter for networks, at a cost per evaluation that grows with
-        the symbol count. 0 (default): AF1.
+        the symbol count, so the forms carry only the symbols the operations take.
+        0 (default): AF1.
 
     Returns:
       ``F(*coords, params=None)``: each coordinate is an `Interval`, an `Affine` or a
@@ -153,6 +174,8 @@ def extend(f: Callable, arithmetic: str = "interval", rounding: str = "fast",
             cache[key] = closed
         return cache[key]
 
+    used_fresh: dict = {}  # trace key -> fresh symbols the program's operations take
+
     @functools.wraps(f)
     def F(*coords, params=None):
         if not coords:
@@ -162,29 +185,49 @@ def extend(f: Callable, arithmetic: str = "interval", rounding: str = "fast",
         param_leaves, param_tree = jax.tree_util.tree_flatten(params, is_leaf=is_lifted)
         closed = trace(coords, param_leaves, param_tree)
         lifted = _lift.lift_coordinates(coords, arithmetic, ctx.outward, n_symbols)
-        if fresh_symbols:
-            lifted = [_more_symbols(c, fresh_symbols) if isinstance(c, Affine) else c
-                      for c in lifted]
-        n = lifted[0].n if arithmetic == "affine" else 0
-        params_in = [_lift.lift_param(p, arithmetic, n) for p in param_leaves]
         batch = np.broadcast_shapes(*[shape_of(c) for c in lifted])
         size = math.prod(batch)
         flat = [_lift.reshape(_lift.broadcast(c, batch), (size,)) for c in lifted]
 
-        def eval_point(point_coords):
-            args = [*point_coords, *params_in]
-            run_ctx = (dataclasses.replace(ctx, fresh=_FreshSymbols(
-                n - fresh_symbols, n, fresh_per_op)) if fresh_symbols else ctx)
-            out = _eval_jaxpr(closed.jaxpr, closed.consts, args, run_ctx)[0]
-            return _lift.as_result(out, point_coords, arithmetic)
+        def run(flat, fresh):
+            """F on the flat batch with `fresh` more symbols (all of them handed out to
+            the operations' error terms); returns (out, symbols handed out)."""
+            flat = [_more_symbols(c, fresh) if isinstance(c, Affine) else c for c in flat]
+            n = flat[0].n if arithmetic == "affine" else 0
+            params_in = [_lift.lift_param(p, arithmetic, n) for p in param_leaves]
+            symbols = _FreshSymbols(n - fresh, n, fresh_per_op) if fresh else None
 
-        out = jax.vmap(eval_point)(flat)
+            def eval_point(point_coords):
+                run_ctx = dataclasses.replace(ctx, fresh=symbols) if fresh else ctx
+                out = _eval_jaxpr(closed.jaxpr, closed.consts,
+                                  [*point_coords, *params_in], run_ctx)[0]
+                return _lift.as_result(out, point_coords, arithmetic)
+
+            return jax.vmap(eval_point)(flat), 0 if symbols is None else symbols.handed_out
+
+        fresh = fresh_symbols
+        if fresh_symbols:
+            # the budget is a cap: the forms carry only the symbols the program's
+            # operations take (a dry run counts them), as each one costs in every form
+            key = (id(closed), tuple(shape_of(c) for c in flat))
+            if key not in used_fresh:
+                used_fresh[key] = _count_fresh(run, flat, fresh_symbols)
+            fresh = used_fresh[key]
+        out = run(flat, fresh)[0]
         # outward affine: one more ulp so that the caller's to_interval (centre +- rad,
         # rounded to nearest) still encloses
         out = _round(ctx, out, 1.0) if isinstance(out, Affine) else out
         return _lift.reshape(out, batch)
 
     return F
+
+
+def _count_fresh(run, flat, cap: int) -> int:
+    """The fresh symbols the operations take from a budget of `cap` (a dry run of
+    ``run(flat, cap)``: traced for shapes only)."""
+    counted = []
+    jax.eval_shape(lambda fl: counted.append(run(fl, cap)[1]) or jnp.zeros(()), flat)
+    return counted[0]
 
 
 def _more_symbols(a: Affine, k: int) -> Affine:
@@ -269,7 +312,7 @@ def _apply(eqn, invals, ctx: _Context) -> list:
                    else rule(*invals))
             if out is not NotImplemented:  # else: the operands it does not cover
                 out = _round(ctx, out, *named.rounding(invals, params))
-                return [ctx.fresh.absorb(out) if ctx.fresh is not None else out]
+                return [ctx.fresh.absorb(out, True) if ctx.fresh is not None else out]
         jaxpr, consts = _closed(body)
         if ctx.arithmetic == "affine" and str(params.get("name", "")) in INTERVAL_CALLS:
             return _in_interval(jaxpr, consts, invals, ctx)
@@ -294,7 +337,7 @@ def _apply(eqn, invals, ctx: _Context) -> list:
     if ctx.outward:
         out = _round(ctx, out, *record.rounding(invals, params))
     if ctx.fresh is not None and name in _NONLINEAR:
-        out = ctx.fresh.absorb(out)
+        out = ctx.fresh.absorb(out, name not in _KINKS)
     return [out]
 
 
