@@ -10,7 +10,7 @@ import pytest
 from reference_trace64 import first_roots
 
 import jaxiso as ji
-from jaxiso.arith import Affine, Interval, aa, extend
+from jaxiso.arith import Affine, Interval, _extend, aa, extend
 
 LO, HI = -1.0, 1.0
 SIZE = 24
@@ -108,17 +108,18 @@ def test_fresh_symbols_enclose_and_are_tighter_than_af1(activation):
 
 
 def test_fresh_symbols_a_smooth_operation_takes_twice_a_kinks_and_forms_carry_only_those():
-    """One layer of 6 neurons, budget 100, 2 per kink: a max takes 2 symbols, a tanh 4,
-    and the forms carry 3 + those, not the whole budget (each symbol costs in every
-    form); a budget smaller than the operation's share caps it."""
+    """One layer of 6 neurons, budget 100, 2 per kink: a max takes 2 symbols, a tanh
+    2 * _SMOOTH_SHARE (at most the 6 neurons), and the forms carry 3 + those, not the whole
+    budget (each symbol costs in every form); a smaller budget caps it."""
     A = jnp.asarray(np.random.default_rng(1).normal(size=(3, 6)), jnp.float32)
 
     def layer(activation):
         return lambda x, y, z: jnp.sum(activation(jnp.stack([x, y, z]) @ A))
 
     box = [Interval(jnp.full(5, -0.5, jnp.float32), jnp.full(5, 0.5, jnp.float32))] * 3
+    smooth = min(6, 2 * _extend._SMOOTH_SHARE)
     for activation, budget, taken in ((lambda h: jnp.maximum(h, 0.0), 100, 2),
-                                      (jnp.tanh, 100, 4), (jnp.tanh, 3, 3)):
+                                      (jnp.tanh, 100, smooth), (jnp.tanh, 3, 3)):
         F = extend(layer(activation), "affine", n_symbols=3, fresh_symbols=budget,
                    fresh_per_op=2)
         out = F(*box)

@@ -107,11 +107,11 @@ class _FreshSymbols:
 
 # A smooth operation's share of fresh symbols against a kink's. The sign grid of bunny
 # (8 x 64 elu) at 8 symbols per operation left 14.5% of a 64^3 grid possible where
-# sampling finds 3.0%; 16 per elu: 6.5%, in the same construction time (its tighter
-# coarse levels test fewer cells). relu networks (fox, hammer, birdcage_occ) gained
-# nothing from 16 per max (1.9 -> 1.7%, 8.3 -> 8.2%) and took up to 60% longer.
-# benchmarks/NOTES.md, session 16.
-_SMOOTH_SHARE = 2
+# sampling finds 3.0%; 16 per elu: 6.5%, 24: 4.8%, 32: 4.4%, in 22 / 27 / 30 / 41 s (the
+# tighter coarse levels test fewer cells); its default call 1.55 -> 1.37 s from 16 to 24.
+# relu networks (fox, hammer, birdcage_occ) gained nothing from 16 per max (1.9 -> 1.7%,
+# 8.3 -> 8.2%) and took up to 60% longer. benchmarks/NOTES.md, session 16.
+_SMOOTH_SHARE = 3
 # kinks: piecewise linear operations, exact where an operand's sign is known
 _KINKS = frozenset({"max", "min", "abs", "select_n"})
 
@@ -132,11 +132,11 @@ def extend(f: Callable, arithmetic: str = "interval", rounding: str = "fast",
       n_symbols: affine only: number of noise symbols (default: one per Interval
         coordinate, in argument order).
       fresh_symbols: affine only: up to this many more symbols for the error terms of
-        nonlinear vector operations (`fresh_per_op` per kink such as relu's max, twice
-        that per smooth operation such as elu or tanh, largest errors first; see
-        `_FreshSymbols`): tighter for networks, at a cost per evaluation that grows with
-        the symbol count, so the forms carry only the symbols the operations take.
-        0 (default): AF1.
+        nonlinear vector operations (`fresh_per_op` per kink such as relu's max,
+        `_SMOOTH_SHARE` times that per smooth operation such as elu or tanh, largest
+        errors first; see `_FreshSymbols`): tighter for networks, at a cost per
+        evaluation that grows with the symbol count, so the forms carry only the
+        symbols the operations take. 0 (default): AF1.
 
     Returns:
       ``F(*coords, params=None)``: each coordinate is an `Interval`, an `Affine` or a

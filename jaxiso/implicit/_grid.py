@@ -6,8 +6,8 @@ for functions: the cells' ranges come from the arithmetic, not from samples).
 The cells' enclosures are affine forms with three box symbols and fresh noise symbols for
 the error terms of the network's nonlinearities (`extend(fresh_symbols=)`): on the
 networks of bench_neural, AF1 alone leaves 49-56% of a 64^3 grid possible, the fresh
-symbols 1.9-2.3% (fox, hammer; sampled true ranges: 1.7%); bunny's elu layers take 16
-symbols each, a relu's 8 (`_extend._SMOOTH_SHARE`): 6.5% (8 each: 14.5%; sampled: 3.0%).
+symbols 1.9-2.3% (fox, hammer; sampled true ranges: 1.7%); bunny's elu layers take 24
+symbols each, a relu's 8 (`_extend._SMOOTH_SHARE`): 4.8% (8 each: 14.5%; sampled: 3.0%).
 The grid is refined level by level from 16^3, only below cells that hold one of the
 scene's isovalues; the others keep their parent's enclosure, so the grid stays sound for
 any isovalue (a slider), only looser away from the ones it was built for.
