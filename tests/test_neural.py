@@ -246,11 +246,13 @@ def _slab(x, y, z):
     return jnp.abs(x - 0.1) - 1e-4
 
 
-def test_features_thinner_than_a_piece_are_found():
+@pytest.mark.parametrize("plan", [None, ji.Plan(tile=16, tape=True)], ids=["default", "tape"])
+def test_features_thinner_than_a_piece_are_found(plan):
     """A slab 2e-4 thick, crossed by rays along x whose starts are shifted so that the
     final pieces' ends (<= 2^-10 apart) fall anywhere about it: the ends rarely straddle it
     (no sign change between them), the closer sampling of a piece without one finds it
-    on every ray under both verifying policies, at t within a piece of the face."""
+    on every ray under both verifying policies, at t within a piece of the face, on the
+    default plan and on the tape path."""
     box = dict(lo=(-1.0,) * 3, hi=(1.0,) * 3, eps=2.0**-10, arithmetic="interval")
     n = 64
     shift = np.linspace(0.0, 0.02, n)
@@ -259,7 +261,7 @@ def test_features_thinner_than_a_piece_are_found():
     rays = ji.Rays(jnp.asarray(o, jnp.float32), jnp.asarray(d, jnp.float32))
     face = 0.1 - 1e-4 - o[:, 0]
     for verify in ("sign", "sign+distance"):
-        h = ji.intersect(ji.ImplicitSurface(_slab, verify=verify, **box), rays)
+        h = ji.intersect(ji.ImplicitSurface(_slab, verify=verify, **box), rays, plan=plan)
         assert np.asarray(h.hit).all(), verify
         assert np.abs(np.asarray(h.t) - face).max() <= 2.0**-10, verify
 

@@ -199,6 +199,13 @@ def _nonzero(x):
     return jnp.where(x > 0, x, 1.0)
 
 
+def changes_sign(f):
+    """[..., m - 1] bool: the values f - iso [..., m, n_iso] at m points along a piece
+    change sign between neighbours, a root between them by the intermediate value
+    theorem (NaN compares False: no root)."""
+    return jnp.any(f[..., :-1, :] * f[..., 1:, :] <= 0, axis=-1)
+
+
 def root_check(g, w, params, isovalues, policy: str):
     """``verify(p, D, s0, s1) -> bool [...]``: is a root of ``g = iso`` established on
     the piece ``p + D s``, s in [s0, s1] (p, D: [..., 3]; s0, s1: [...])? None for
@@ -207,8 +214,8 @@ def root_check(g, w, params, isovalues, policy: str):
     "sign": g - iso changes sign between the piece's ends (point evaluation; a root by
     the intermediate value theorem; the first and last piece of a segment look half a
     piece beyond it, so a root on the box's face is kept), or, where they do not, between
-    two of _DIP + 1 points spread over the piece (over the two parts about the point
-    nearest a level, with `parts`): a feature thinner than the piece whose enclosure
+    two of CLOSER_PARTS + 1 points spread over the piece (over the two parts about the
+    point nearest a level, with `parts`): a feature thinner than the piece whose enclosure
     holds a level (birdcage_occ's bars: 6e-4 against pieces of 1e-3) is kept, and its
     root is proven like any other. "sign+distance" also accepts
     a piece whose midpoint m touches the level set (`touches`): within the piece's length
@@ -252,7 +259,7 @@ def root_check(g, w, params, isovalues, policy: str):
         dipped, sub, touched = _only_where(~ok, closer, p, D, s0, s1,
                                            at(first[..., None])[..., 0],
                                            at(last[..., None])[..., 0])
-        part = jnp.where(ok, part, first + (sub * (last - first)) // _DIP)
+        part = jnp.where(ok, part, first + (sub * (last - first)) // CLOSER_PARTS)
         ok = ok | dipped
         if parts is None:
             return ok | touched
@@ -267,17 +274,18 @@ def root_check(g, w, params, isovalues, policy: str):
         return dipped, sub, touched
 
     def dip(p, D, a, b):
-        """(ok, sub): the first of _DIP equal parts of [a, b] whose ends' signs differ."""
-        frac = jnp.arange(_DIP + 1, dtype=jnp.float32) / _DIP
+        """(ok, sub): the first of CLOSER_PARTS equal parts of [a, b] whose ends' signs
+        differ."""
+        frac = jnp.arange(CLOSER_PARTS + 1, dtype=jnp.float32) / CLOSER_PARTS
         _, change = sign_changes(p, D, a[..., None] + (b - a)[..., None] * frac)
         return jnp.any(change, axis=-1), jnp.argmax(change, axis=-1)
 
     def sign_changes(p, D, s):
         """g - iso [..., m, n_iso] at the points p + D s (s [..., m]), and where it
-        changes sign between neighbours [..., m - 1] (NaN compares False: no root)."""
+        changes sign between neighbours [..., m - 1] (`changes_sign`)."""
         q = p[..., None, :] + D[..., None, :] * s[..., None]
         f = value(q[..., 0], q[..., 1], q[..., 2], w, params)[..., None] - iso
-        return f, jnp.any(f[..., :-1, :] * f[..., 1:, :] <= 0, axis=-1)
+        return f, changes_sign(f)
 
     def touching(p, D, s0, s1):
         m = p + D * (0.5 * (s0 + s1))[..., None]
@@ -295,7 +303,7 @@ def root_check(g, w, params, isovalues, policy: str):
 
 # A piece with no sign change at its parts' ends is sampled this much finer over the two
 # parts around its point nearest a level (`root_check`)
-_DIP = 8
+CLOSER_PARTS = 8
 
 
 def _only_where(need, test, *args):

@@ -43,7 +43,7 @@ from ..arith._affine_type import Affine
 from ..arith._interval import Interval
 from ..arith._tape import Tape
 from ._bisect import depth_for, piece_width
-from ._field import ray_boxes, ray_segments, touches
+from ._field import CLOSER_PARTS, changes_sign, ray_boxes, ray_segments, touches
 from .program import _chunked_eval, _histogram, _survivors
 
 __all__ = ["intersect_rays", "ROOT_GROUP", "ROOT_SLABS"]
@@ -221,9 +221,23 @@ def _final_checks(tapes, reg, seg, rest, iso, policy):
     fm, grad = _value_grad(tapes, rest, _midpoints(seg, reg))
     if policy == "none":
         return fm, grad, valid
-    fa, fb = (_values(tapes, rest, pr + reg[s][:, None] * Dr)[:, 0] for s in ("s0", "s1"))
-    sign = jnp.any((fa[:, None] - iso) * (fb[:, None] - iso) <= 0, axis=-1)
-    return fm, grad, valid & sign
+    ends = jnp.stack([_values(tapes, rest, pr + reg[s][:, None] * Dr)[:, 0]
+                      for s in ("s0", "s1")], axis=-1)
+    return fm, grad, valid & changes_sign(ends[..., None] - iso)[:, 0]
+
+
+@jax.jit
+def _final_closer(tapes, reg, seg, rest, iso):
+    """Where a final piece's ends show no sign change: a sign change between CLOSER_PARTS
+    + 1 points spread over it ([n] bool), a feature thinner than the piece (as in
+    `_field.root_check`). A call of its own, made only when some valid piece fails the
+    sign test."""
+    pr, Dr = _piece_lines(seg, reg)
+    frac = jnp.arange(CLOSER_PARTS + 1, dtype=jnp.float32) / CLOSER_PARTS
+    s = reg["s0"][:, None] + (reg["s1"] - reg["s0"])[:, None] * frac  # [n, m]
+    q = pr[:, None, :] + Dr[:, None, :] * s[..., None]
+    f = _point_eval(tapes, q[..., 0], q[..., 1], q[..., 2], rest)  # [n, m]
+    return reg["valid"] & jnp.any(changes_sign(f[..., None] - iso), axis=-1)
 
 
 @jax.jit
@@ -255,6 +269,8 @@ def _nearest(reg, ok, fm, grad, n_rays):
 def _final(tapes, reg, seg, rest, iso, policy, n_rays):
     """Verify every final piece (host-side driver), keep each ray's nearest."""
     fm, grad, ok = _final_checks(tapes, reg, seg, rest, iso, policy)
+    if policy != "none" and bool(jnp.any(reg["valid"] & ~ok)):
+        ok = ok | _final_closer(tapes, reg, seg, rest, iso)
     if policy == "sign+distance" and bool(jnp.any(reg["valid"] & ~ok)):
         ok = ok | _final_touching(tapes, reg, seg, rest, iso, fm, grad)
     return _nearest(reg, ok, fm, grad, n_rays)
