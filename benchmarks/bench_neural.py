@@ -48,10 +48,11 @@ agreement on the pilot's pixels (a shared 2-core CPU cannot afford 10-minute cal
 
 Section ``tightness`` (always in full mode, with --tightness in quick mode): enclosure
 width / true range of each network on ray pieces of length 2^-4 .. 2^-14 of the domain
-edge, for interval, affine and affine+fresh64 through ``ji.extend``: affine gets one
+edge, for interval, affine and affine+grid through ``ji.extend``: affine gets one
 noise symbol (the piece's parameter), interval the piece's axis box (as the ray tracer
-builds them), affine+fresh64 the affine form with 64 fresh symbols for the
-nonlinearities' errors (``fresh_symbols=64``, the sign grid's arithmetic). Pieces are
+builds them), affine+grid the sign grid's arithmetic: the affine form with fresh
+symbols for the nonlinearities' errors (the grid's ``fresh_symbols`` cap and
+``fresh_per_op``: 8 per relu, 24 per elu). Pieces are
 centred at points near the surface (the smallest |f| of uniform samples) along random
 directions; the true range is the float64 range of 257 points along the piece. Median
 per length.
@@ -79,6 +80,7 @@ import numpy as np
 from jax import lax
 
 import jaxiso as ji
+from jaxiso.implicit import _grid
 
 ROOT = pathlib.Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT))
@@ -103,7 +105,7 @@ HAND_SAMPLES = 128
 HAND_BISECTIONS = 8
 TIGHT_LENGTHS = tuple(2.0**-k for k in range(4, 15))  # of the domain edge
 TIGHT_SAMPLES = 257
-TIGHT_ARITHMETICS = ("interval", "affine", "affine+fresh64")  # the last: the sign grid's
+TIGHT_ARITHMETICS = ("interval", "affine", "affine+grid")  # the last: the sign grid's
 SLOW_S = 60.0  # this benchmark's default --slow-s
 
 
@@ -571,11 +573,13 @@ def tightness_section(networks, cfg):
         true = v.max(axis=1) - v.min(axis=1)
         printed = []
         for arith in TIGHT_ARITHMETICS:
-            base, _, fresh = arith.partition("+fresh")
+            base, _, grid = arith.partition("+")
             coords, kw, form = piece_coords(base, jnp.asarray(cc32), jnp.asarray(half32))
-            if fresh:  # the sign grid's arithmetic, here on ray pieces
-                kw = dict(kw, fresh_symbols=int(fresh))
-                form += f", {fresh} fresh symbols for the nonlinearities' errors"
+            if grid:  # the sign grid's arithmetic, here on ray pieces
+                kw = dict(kw, fresh_symbols=_grid.FRESH_SYMBOLS,
+                          fresh_per_op=_grid.FRESH_PER_OP)
+                form += (f", fresh symbols for the nonlinearities' errors (at most "
+                         f"{_grid.FRESH_SYMBOLS}, {_grid.FRESH_PER_OP} per kink)")
             t0 = now()
             try:
                 width = enclosure_widths(net.mlp, base, coords, kw)
