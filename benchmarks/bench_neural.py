@@ -80,7 +80,6 @@ import numpy as np
 from jax import lax
 
 import jaxiso as ji
-from jaxiso.implicit import _grid
 
 ROOT = pathlib.Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT))
@@ -576,10 +575,11 @@ def tightness_section(networks, cfg):
             base, _, grid = arith.partition("+")
             coords, kw, form = piece_coords(base, jnp.asarray(cc32), jnp.asarray(half32))
             if grid:  # the sign grid's arithmetic, here on ray pieces
-                kw = dict(kw, fresh_symbols=_grid.FRESH_SYMBOLS,
-                          fresh_per_op=_grid.FRESH_PER_OP)
+                cells = ji.implicit.SignGrid
+                kw = dict(kw, fresh_symbols=cells.FRESH_SYMBOLS,
+                          fresh_per_op=cells.FRESH_PER_OP)
                 form += (f", fresh symbols for the nonlinearities' errors (at most "
-                         f"{_grid.FRESH_SYMBOLS}, {_grid.FRESH_PER_OP} per kink)")
+                         f"{cells.FRESH_SYMBOLS}, {cells.FRESH_PER_OP} per kink)")
             t0 = now()
             try:
                 width = enclosure_widths(net.mlp, base, coords, kw)

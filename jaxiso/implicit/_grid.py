@@ -52,6 +52,11 @@ class SignGrid:
     low: jax.Array
     high: jax.Array
 
+    # the cells' arithmetic: extend(g, "affine", n_symbols=3, fresh_symbols=FRESH_SYMBOLS,
+    # fresh_per_op=FRESH_PER_OP) on each cell's box
+    FRESH_SYMBOLS: typing.ClassVar[int] = FRESH_SYMBOLS
+    FRESH_PER_OP: typing.ClassVar[int] = FRESH_PER_OP
+
     @property
     def resolution(self) -> tuple:
         return tuple(np.shape(self.low))
