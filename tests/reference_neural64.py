@@ -23,6 +23,8 @@ ACTIVATIONS64 = {
     "relu": lambda h: np.maximum(h, 0.0),
     # expm1 of the clipped value: no overflow warning for large positive h
     "elu": lambda h: np.where(h > 0.0, h, np.expm1(np.minimum(h, 0.0))),
+    # log(1 + e^h) without overflow (the layout examples/fit_neural_sdf.py writes)
+    "softplus": lambda h: np.logaddexp(0.0, h),
 }
 # points per matmul pass: [_CHUNK, width] float64 activations stay at a few MiB
 _CHUNK = 2**14

@@ -211,6 +211,30 @@ def floor_divide_affine(a, b):
     return NotImplemented if out is NotImplemented else aa.from_interval(out, None, a.n)
 
 
+def softplus_interval(x):
+    """jax.nn.softplus = log(1 + e^x): increasing, so ``[softplus(lo), softplus(hi)]``."""
+    if not isinstance(x, Interval):
+        return NotImplemented
+    return ia.monotone_increasing(jax.nn.softplus)(x)
+
+
+def softplus_affine(x):
+    """jax.nn.softplus: convex with slope sigmoid(x) in (0, 1), so the Chebyshev
+    linearisation keeps the form's correlation. Its body, max(x, 0) + log1p(e^-|x|),
+    loses it: the cells of a trained 8 x 64 softplus SDF's sign grid were all possible
+    (median width 24 on cells 1/8 wide)."""
+    if not isinstance(x, Affine):
+        return NotImplemented
+
+    def dg_inv(slope):  # logit: the tangent point of a chord's slope
+        s = jnp.clip(slope, 1e-30, 1.0 - 2.0**-24)
+        return jnp.log(s) - jnp.log1p(-s)
+
+    iv = aa._range(x)
+    return aa._chebyshev(x, jax.nn.softplus, jax.nn.sigmoid, dg_inv, True, iv,
+                         ia.monotone_increasing(jax.nn.softplus)(iv))
+
+
 def _elu_alpha(body, x, rest):
     """elu's alpha from its body, a point function of (x, *rest): elu(-1) = alpha (e^-1 -
     1); None when it is not a concrete non-negative number (a traced or lifted alpha:

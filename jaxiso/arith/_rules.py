@@ -263,6 +263,10 @@ NAMED_CALLS["hypot"] = Rule(ar.hypot_interval, ar.hypot_affine,
 # non-decreasing, and convex for 0 < alpha <= 1 (alpha is read from the body)
 NAMED_CALLS["elu"] = Rule(ar.elu_interval, ar.elu_affine, ulps=_ulps.TRANSCENDENTAL,
                           with_body=True)
+# jax.nn.softplus: its body max(x, 0) + log1p(exp(-|x|)) loses the correlation between
+# the two terms; softplus is increasing and convex
+NAMED_CALLS["softplus"] = Rule(ar.softplus_interval, ar.softplus_affine,
+                               ulps=_ulps.TRANSCENDENTAL)
 NAMED_CALLS["floor_divide"] = Rule(ar.floor_divide_interval, ar.floor_divide_affine,
                                    ulps=0.0)
 # jnp.trunc: its body is where(x < 0, ceil, floor), the hull [-1, 1] on a box across 0
