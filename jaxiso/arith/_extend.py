@@ -174,7 +174,7 @@ def extend(f: Callable, arithmetic: str = "interval", rounding: str = "fast",
             cache[key] = closed
         return cache[key]
 
-    used_fresh: dict = {}  # trace key -> fresh symbols the program's operations take
+    used_fresh: dict = {}  # (jaxpr, coordinate kinds) -> fresh symbols the operations take
 
     @functools.wraps(f)
     def F(*coords, params=None):
@@ -209,7 +209,9 @@ def extend(f: Callable, arithmetic: str = "interval", rounding: str = "fast",
         if fresh_symbols:
             # the budget is a cap: the forms carry only the symbols the program's
             # operations take (a dry run counts them), as each one costs in every form
-            key = (id(closed), tuple(shape_of(c) for c in flat))
+            # per point: the count depends on the program and which coordinates are
+            # forms, not on the batch's size (`cache` keeps `closed` alive: ids hold)
+            key = (id(closed), tuple(isinstance(c, Affine) for c in flat))
             if key not in used_fresh:
                 used_fresh[key] = _count_fresh(run, flat, fresh_symbols)
             fresh = used_fresh[key]
