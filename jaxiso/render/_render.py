@@ -16,10 +16,10 @@ import warnings
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .._camera import Camera
 from .._core import Plan, Rays, concrete, facing, pytree_dataclass
+from ._distributed import as_mesh, mesh_of, shard_rays, to_global, to_host
 from ._image import Image
 from ._plan import (
     _check_scene,
@@ -130,7 +130,8 @@ def render(scene, camera: Camera, *, shading: Shading | None = None,
       shading: a `Shading` (default: opaque Phong, no shadows).
       light: a `Light` (default: directional, over the viewer's right shoulder).
       devices: None (default device), a list of devices or a `jax.sharding.Mesh`
-        with one axis: camera tiles are split across them.
+        with one axis: camera tiles are split across them. The mesh may span processes
+        (after `jax.distributed.initialize`): every process then gets the whole image.
       plan: a `Plan` (default: `plan_for(scene, rays per device)`, the fastest measured
         tile edge or persistent lanes for the scene and backend).
 
@@ -143,7 +144,8 @@ def render(scene, camera: Camera, *, shading: Shading | None = None,
         raise TypeError(f"camera must be a jaxiso.Camera, got {type(camera).__name__}")
     shading = Shading() if shading is None else shading
     light = Light() if light is None else light
-    mesh = _as_mesh(devices)
+    mesh = None if devices is None else as_mesh(devices)
+    home = mesh_of(scene, devices)  # where inputs live: a mesh over processes, or None
     n_dev = 1 if mesh is None else mesh.devices.size
     plan = plan_for(scene, -(-camera.width * camera.height // n_dev)) if plan is None else plan
     if not isinstance(plan, Plan):
@@ -155,25 +157,10 @@ def render(scene, camera: Camera, *, shading: Shading | None = None,
                           stacklevel=2)
         img = _render_tape(scene, camera, shading, light, plan)
     else:
-        img = _render(scene, camera, shading, light, plan, mesh)
+        img = _render(*to_global((scene, camera, shading, light), home), plan, mesh)
     if isinstance(img, jax.core.Tracer):
         return img
-    return Image(jax.device_get(img))
-
-
-def _as_mesh(devices):
-    if devices is None:
-        return None
-    if isinstance(devices, Mesh):
-        if len(devices.axis_names) != 1:
-            raise ValueError("render needs a mesh with one axis")
-        return devices
-    if isinstance(devices, NamedSharding):
-        return _as_mesh(devices.mesh)
-    devs = list(devices)
-    if not devs:
-        raise ValueError("devices is empty")
-    return Mesh(np.array(devs), ("tiles",))
+    return Image(to_host(img))
 
 
 @functools.partial(jax.jit, static_argnums=(4, 5))
@@ -184,13 +171,14 @@ def _render(scene, camera, shading, light, plan, mesh):
     o = to_tiles(rays.origin, tile)
     d = to_tiles(rays.direction, tile)
 
-    def shade_all(o, d):
-        return shade_rays(scene, Rays(o, d), shading, light, plan)
+    def shade_all(shared, o, d):
+        return shade_rays(shared[0], Rays(o, d), shared[1], shared[2], plan)
 
+    shared = (scene, shading, light)
     if mesh is None:
-        colors = shade_all(o, d)
+        colors = shade_all(shared, o, d)
     else:
-        colors = _sharded(shade_all, mesh, o, d, plan.packet)
+        colors = shard_rays(shade_all, mesh, shared, (o, d), plan.packet)
     return from_tiles(colors, tile, h, w)
 
 
@@ -203,21 +191,6 @@ def _render_tape(scene, camera, shading, light, plan):
     o, d = to_zorder(rays.origin, tile), to_zorder(rays.direction, tile)
     colors = shade_rays(scene, Rays(o, d), shading, light, plan)
     return from_zorder(colors, tile, camera.height, camera.width)
-
-
-def _sharded(fn, mesh, o, d, packet):
-    """Split tile-ordered rays over the mesh axis (whole packets per device)."""
-    n_dev = mesh.devices.size
-    n = o.shape[0]
-    block = n_dev * packet
-    pad = (-n) % block
-    o = jnp.concatenate([o, jnp.broadcast_to(o[:1], (pad, 3))])
-    d = jnp.concatenate([d, jnp.broadcast_to(d[:1], (pad, 3))])
-    axis = mesh.axis_names[0]
-    spec = PartitionSpec(axis)
-    out = jax.shard_map(fn, mesh=mesh, in_specs=(spec, spec), out_specs=spec,
-                        check_vma=False)(o, d)
-    return out[:n]
 
 
 def _trace(scene, plan, rays, t_min=0.0, t_max=jnp.inf):
