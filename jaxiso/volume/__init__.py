@@ -3,6 +3,7 @@ dense macrocell-grid baseline, exact trilinear cell intersection, level of detai
 time-varying sequences."""
 
 from . import data
+from ._bricks import BrickedVolume, brick_volume
 from ._hierarchy import MacrocellGrid
 from ._lod import LevelOfDetail, lod_for
 from ._octree import OctreeVolume
@@ -10,4 +11,5 @@ from ._scene import VolumeIsosurface
 from ._sequence import VolumeSequence
 
 __all__ = ["OctreeVolume", "VolumeIsosurface", "MacrocellGrid", "VolumeSequence",
-           "LevelOfDetail", "lod_for", "data"]
+           "LevelOfDetail", "lod_for", "data", "BrickedVolume",
+           "brick_volume"]
