@@ -1,5 +1,6 @@
 """Command line: ``jaxiso gallery`` (default) renders the catalogue of test surfaces;
-``jaxiso demo`` prints interval vs affine enclosures.
+``jaxiso demo`` prints interval vs affine enclosures; ``jaxiso render`` renders one scene,
+on one process or on N (local processes, srun, mpirun: README "More than one machine").
 
 Bad arguments (unknown surface names, a negative seed, a size out of range, an output path
 that is not a writable directory) are reported as argparse reports its own: usage and a
@@ -88,6 +89,92 @@ def _gallery(args) -> int:
     return 0
 
 
+def _render_scene(spec: str, size: int):
+    """(scene, camera, volume data or None) for a --scene spec: implicit:NAME (the
+    catalogue), volume:NAME[:N] (jaxiso.volume.data, N^3 voxels), tets:N (an N^3 cube of
+    Kuhn tets with a sphere's distance field)."""
+    import numpy as np
+
+    from . import Camera, OctreeVolume, TetIsosurface, VolumeIsosurface, surfaces, tet_mesh
+    from .tetra import data as tet_data
+    from .volume import data as vol_data
+
+    kind, _, rest = spec.partition(":")
+    if kind == "implicit":
+        return surfaces.scene(rest), surfaces.camera(rest, size), None
+    if kind == "volume":
+        name, _, n = rest.partition(":")
+        vox = vol_data.examples()[name](int(n or 41))
+        spacing, origin = vol_data.box_geometry(vox.shape, *vol_data.DOMAINS[name])
+        iso = vol_data.ISOVALUES[name]
+        scene = VolumeIsosurface(OctreeVolume.from_array(vox, spacing=spacing, origin=origin,
+                                                         progress=False), iso)
+        lo, hi = np.asarray(scene.lo), np.asarray(scene.hi)
+        mid, ext = (lo + hi) / 2, float(np.max(hi - lo))
+        eye = mid + ext * np.array([1.3, 0.9, 0.7])
+        return scene, Camera.look_at(eye, mid, (0, 0, 1), 40.0, size), (vox, spacing,
+                                                                         origin, iso)
+    if kind == "tets":
+        points, tets = tet_data.cube_tets(int(rest or 8))
+        scene = TetIsosurface(tet_mesh(points, tets, tet_data.sphere_field(points)), 0.0)
+        cam = Camera.look_at((1.9, 1.5, 1.3), (0.5, 0.5, 0.5), (0, 0, 1), 40.0, size)
+        return scene, cam, None
+    raise ValueError(f"unknown scene kind {kind!r}")
+
+
+def _render_one(args) -> int:
+    import jax
+    import numpy as np
+
+    from . import distributed, intersect, render, save_png
+
+    if args.coordinator or args.distributed:
+        distributed.initialize(args.coordinator, args.num_processes, args.process_id,
+                               heartbeat_timeout_seconds=args.heartbeat)
+    rank, n_proc = jax.process_index(), jax.process_count()
+    mesh = distributed.process_mesh() if len(jax.devices()) > 1 else None
+    scene, cam, volume = _render_scene(args.scene, args.size)
+    devices = mesh
+    if args.bricks:
+        from .volume import brick_volume
+
+        vox, spacing, origin, iso = volume
+        scene = brick_volume(vox, iso, distributed.process_mesh("bricks"),
+                             spacing=spacing, origin=origin)
+        devices = None  # the data is split, not the rays
+    t0 = time.perf_counter()
+    img = render(scene, cam, devices=devices)
+    t_render = time.perf_counter() - t0
+    where = "" if mesh is None else f" over {mesh.devices.size} devices"
+    held = _local_nbytes(scene)
+    print(f"jaxiso render: process {rank}/{n_proc}{where}, {args.scene} "
+          f"{args.size}x{args.size}{' in bricks' if args.bricks else ''}: "
+          f"{t_render:.2f} s (incl. compile), scene arrays here {held / 2**20:.2f} MiB",
+          flush=True)
+    if rank == 0 and args.out:
+        save_png(img, args.out)
+    if args.npz and (rank == 0 or "{process}" in args.npz):
+        found = {}
+        if args.hits:
+            hits = distributed.to_host(intersect(scene, cam.rays(), devices=devices))
+            found = dict(t=hits.t, hit=hits.hit, surface=hits.surface, normal=hits.normal)
+        np.savez(args.npz.format(process=rank), image=np.asarray(img), scene_nbytes=held,
+                 **found)
+    return 0
+
+
+def _local_nbytes(scene) -> int:
+    """Bytes of the scene's arrays that this process's devices hold (a brick-distributed
+    volume: its own bricks only)."""
+    import jax
+
+    total = 0
+    for leaf in jax.tree_util.tree_leaves(scene):
+        if isinstance(leaf, jax.Array):
+            total += sum(s.data.nbytes for s in leaf.addressable_shards)
+    return int(total)
+
+
 def _contact_sheet(images, cols: int):
     import numpy as np
 
@@ -120,15 +207,42 @@ def _check(args, parser) -> None:
     from . import surfaces
 
     known = surfaces.names()
-    unknown = [n for n in args.names or () if n not in known]
+    unknown = [n for n in getattr(args, "names", None) or () if n not in known]
     if unknown:
         parser.error(f"unknown surfaces: {', '.join(unknown)}; known: {', '.join(known)}")
     if args.command == "demo" and args.seed < 0:
         parser.error(f"--seed must be >= 0, got {args.seed}")
+    if args.command == "render":
+        _check_render(args, parser)
     if args.command == "gallery":
         if not MIN_SIZE <= args.size <= MAX_SIZE:
             parser.error(f"--size must be in [{MIN_SIZE}, {MAX_SIZE}], got {args.size}")
         _check_out(args.out, parser)
+
+
+def _check_render(args, parser) -> None:
+    """`jaxiso render`'s arguments, before JAX starts."""
+    from . import surfaces
+    from .volume import data as vol_data
+
+    kind, _, rest = args.scene.partition(":")
+    name, _, n = rest.partition(":")
+    known = {"implicit": surfaces.names(), "volume": list(vol_data.examples())}
+    if kind not in ("implicit", "volume", "tets"):
+        parser.error(f"--scene {args.scene}: kind must be implicit, volume or tets")
+    if kind in known and name not in known[kind]:
+        parser.error(f"--scene {args.scene}: unknown {kind} {name!r}; known: "
+                     f"{', '.join(known[kind])}")
+    count = rest if kind == "tets" else n
+    if count and (not count.isdigit() or int(count) < 2):
+        parser.error(f"--scene {args.scene}: the size must be an int >= 2")
+    if args.bricks and kind != "volume":
+        parser.error("--bricks splits volumes only")
+    if not MIN_SIZE <= args.size <= MAX_SIZE:
+        parser.error(f"--size must be in [{MIN_SIZE}, {MAX_SIZE}], got {args.size}")
+    given = [args.num_processes is not None, args.process_id is not None]
+    if args.coordinator and not all(given):
+        parser.error("--coordinator needs --num-processes and --process-id")
 
 
 def _check_out(out: str, parser) -> None:
@@ -157,12 +271,30 @@ def main(argv=None) -> int:
     gallery.add_argument("--shadows", action="store_true", help="cast shadow rays")
     gallery.add_argument("--arithmetic", choices=("interval", "affine"),
                          help="override each surface's default arithmetic")
+    one = sub.add_parser("render", help="render one scene, on one or N processes")
+    one.add_argument("--scene", default="implicit:sphere",
+                     help="implicit:NAME | volume:NAME[:N] | tets:N (default implicit:sphere)")
+    one.add_argument("--size", type=int, default=256, help="image edge in pixels")
+    one.add_argument("--out", default="render.png", help="PNG written by process 0")
+    one.add_argument("--npz", help="image and hits (.npz) by process 0; a path with "
+                     "{process} is written by every process")
+    one.add_argument("--hits", action="store_true",
+                     help="also store the camera rays' hits (intersect) in --npz")
+    one.add_argument("--bricks", action="store_true",
+                     help="volume only: one brick of the voxels per device")
+    one.add_argument("--distributed", action="store_true",
+                     help="join a multi-process run detected from SLURM / Open MPI")
+    one.add_argument("--coordinator", help="host:port of process 0 (local processes)")
+    one.add_argument("--num-processes", type=int)
+    one.add_argument("--process-id", type=int)
+    one.add_argument("--heartbeat", type=int, default=100,
+                     help="seconds of silence after which a process counts as dead")
     args = parser.parse_args(argv)
     if args.command is None:
         args = gallery.parse_args([], argparse.Namespace(command="gallery"))
-    _check(args, {"gallery": gallery, "demo": demo}[args.command])
+    _check(args, {"gallery": gallery, "demo": demo, "render": one}[args.command])
     try:
-        return {"gallery": _gallery, "demo": _demo}[args.command](args)
+        return {"gallery": _gallery, "demo": _demo, "render": _render_one}[args.command](args)
     except OSError as err:  # the disk filling up, a directory removed while rendering
         print(f"jaxiso {args.command}: error: {err}", file=sys.stderr)
         return 1

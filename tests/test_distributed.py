@@ -1,0 +1,242 @@
+"""More than one process: `jaxiso render` under 2 local processes on 127.0.0.1 (JAX's
+distributed runtime, gloo CPU collectives).
+
+- rays sharded over a mesh of both processes give, in every process, the image the
+  single process renders (bit for bit) for an implicit, a volume and a tet mesh, and
+  `intersect` the same hits;
+- a volume cut into 2 bricks (one per process, each with its own octree) gives the hits
+  of the whole volume, each process holding about half of the volume's arrays;
+- a process that dies makes the other stop with the runtime's error, not hang.
+
+The reference is the same command in one process (this one: one CPU device). Skipped,
+with the reason, where two processes cannot start JAX's runtime with CPU collectives.
+"""
+
+import os
+import socket
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from jaxiso import cli
+
+TIMEOUT = 240  # seconds for a 2-process run; a hang fails the test instead of the suite
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _env():
+    # one CPU device per process, whatever the suite's XLA_FLAGS
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    env.pop("XLA_FLAGS", None)
+    return env
+
+
+def _launch(args, processes=2, timeout=TIMEOUT):
+    """Run `python -m jaxiso.cli render ARGS` as `processes` local processes; return
+    their CompletedProcess-like (returncode, stdout, stderr) in rank order."""
+    port = _free_port()
+    procs = [subprocess.Popen(
+        [sys.executable, "-m", "jaxiso.cli", "render", *args, "--coordinator",
+         f"127.0.0.1:{port}", "--num-processes", str(processes), "--process-id", str(k)],
+        env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        for k in range(processes)]
+    out = []
+    try:
+        for p in procs:
+            so, se = p.communicate(timeout=timeout)
+            out.append((p.returncode, so, se))
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.communicate()
+    return out
+
+
+_PROBE = textwrap.dedent("""
+    import sys
+    from jaxiso import distributed
+    distributed.initialize(sys.argv[1], 2, int(sys.argv[2]), heartbeat_timeout_seconds=20)
+    import jax, jax.numpy as jnp, numpy as np
+    from jax.sharding import NamedSharding, PartitionSpec as P
+    mesh = distributed.process_mesh()
+    x = distributed.to_global(np.arange(4.0), mesh)
+    f = jax.jit(lambda x: jax.shard_map(lambda a: jax.lax.psum(a, "rays"), mesh=mesh,
+                in_specs=P("rays"), out_specs=P())(x))
+    print("sum", distributed.to_host(f(x)))
+""")
+
+
+@pytest.fixture(scope="module")
+def two_processes():
+    """Skip (with the error) where 2 local processes cannot run a CPU collective."""
+    port = _free_port()
+    procs = [subprocess.Popen([sys.executable, "-c", _PROBE, f"127.0.0.1:{port}", str(k)],
+                              env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True) for k in range(2)]
+    try:
+        results = [p.communicate(timeout=120) for p in procs]
+    except subprocess.TimeoutExpired:
+        for p in procs:
+            p.kill()
+        pytest.skip("2 local JAX processes did not finish a CPU collective in 120 s")
+    # psum over the 2 processes of their halves [0, 1] and [2, 3]
+    bad = [(so + se).strip().splitlines()[-1:] for p, (so, se) in zip(procs, results)
+           if p.returncode != 0 or "sum [2. 4.]" not in so]
+    if bad:
+        pytest.skip(f"this platform cannot run multi-process CPU collectives: {bad[0]}")
+
+
+def _reference(tmp_path, args):
+    """The single-process result of the same command (this process, one device)."""
+    path = tmp_path / "ref.npz"
+    assert cli.main(["render", *args, "--out", "", "--npz", str(path)]) == 0
+    return np.load(path)
+
+
+def _distributed(tmp_path, args):
+    runs = _launch([*args, "--out", "", "--npz", str(tmp_path / "p{process}.npz")])
+    for rank, (code, so, se) in enumerate(runs):
+        assert code == 0, f"process {rank} failed:\n{se[-3000:]}"
+        assert f"process {rank}/2 over 2 devices" in so
+    return [np.load(tmp_path / f"p{k}.npz") for k in range(2)]
+
+
+@pytest.mark.parametrize("scene", ["implicit:sphere", "volume:marschner_lobb:25", "tets:4"])
+def test_two_processes_render_the_single_process_image(tmp_path, two_processes, scene):
+    args = ["--scene", scene, "--size", "32"] + (["--hits"] if scene.startswith("imp") else [])
+    ref = _reference(tmp_path, args)
+    covered = np.any(ref["image"] < 0.99, axis=-1)
+    assert 50 < covered.sum() < 32 * 32  # the surface is in view, not the whole view
+    for got in _distributed(tmp_path, args):
+        np.testing.assert_array_equal(got["image"], ref["image"])
+        if "t" in ref:  # intersect over the 2-process mesh: the same hits
+            for key in ("t", "hit", "surface", "normal"):
+                np.testing.assert_array_equal(got[key], ref[key])
+
+
+@pytest.mark.heavy
+def test_two_bricks_give_the_whole_volumes_hits(tmp_path, two_processes):
+    """Each process builds and holds one brick (its own octree) of a 41^3 volume; the
+    composited hits equal the whole volume's: the same hit mask on >= 99.99% of pixels,
+    depths within 1e-4 voxels, and each process holds at most 0.6 of the whole octree."""
+    base = ["--scene", "volume:marschner_lobb:41", "--size", "32", "--hits"]
+    ref = _reference(tmp_path, base)
+    assert ref["hit"].sum() > 100
+    spacing = 2.0 / 40  # marschner_lobb spans [-1, 1] on each axis; unit camera rays
+
+    for got in _distributed(tmp_path, base + ["--bricks"]):
+        same = got["hit"] == ref["hit"]
+        assert same.mean() >= 0.9999, f"{(~same).sum()} pixels differ"
+        both = got["hit"] & ref["hit"]
+        depth = np.abs(got["t"][both] - ref["t"][both]) / spacing
+        assert depth.max() <= 1e-4, depth.max()
+        assert np.all(got["surface"][both] == ref["surface"][both])
+        np.testing.assert_allclose(got["normal"][both], ref["normal"][both], atol=1e-3)
+        assert got["scene_nbytes"] <= 0.6 * ref["scene_nbytes"], (
+            got["scene_nbytes"], ref["scene_nbytes"])
+        covered = np.any(ref["image"] < 0.99, axis=-1)
+        assert np.abs(got["image"] - ref["image"]).max() < 1e-3 and covered.sum() > 100
+
+
+def test_a_dead_process_stops_the_other_with_an_error(tmp_path, two_processes):
+    """Process 1 exits right after joining; process 0's render must fail (not hang) with
+    JAX's runtime error naming the dead task, within the heartbeat timeout."""
+    port = _free_port()
+    base = [sys.executable, "-m", "jaxiso.cli", "render", "--scene", "implicit:sphere",
+            "--size", "32", "--out", "", "--coordinator", f"127.0.0.1:{port}",
+            "--num-processes", "2", "--heartbeat", "5"]
+    code = textwrap.dedent(f"""
+        import os, sys
+        from jaxiso import distributed
+        distributed.initialize("127.0.0.1:{port}", 2, 1, heartbeat_timeout_seconds=5)
+        os._exit(3)
+    """)
+    live = subprocess.Popen(base + ["--process-id", "0"], env=_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    dead = subprocess.run([sys.executable, "-c", code], env=_env(), capture_output=True,
+                          text=True, timeout=120)
+    assert dead.returncode == 3
+    try:
+        _, err = live.communicate(timeout=90)
+    except subprocess.TimeoutExpired:
+        live.kill()
+        live.communicate()
+        pytest.fail("the live process hung after its peer died")
+    assert live.returncode != 0
+    assert "another task died" in err or "stopped sending heartbeats" in err, err[-2000:]
+
+
+_BRICKS_ONE_PROCESS = textwrap.dedent("""
+    import jax, numpy as np, jaxiso as ji
+    from jaxiso.distributed import process_mesh
+    from jaxiso.volume import OctreeVolume, VolumeIsosurface, brick_volume, data
+    assert len(jax.devices()) == 2
+    vox = data.marschner_lobb(33)
+    sp, org = data.box_geometry(vox.shape, -1.0, 1.0)
+    whole = VolumeIsosurface(OctreeVolume.from_array(vox, spacing=sp, origin=org), 0.5)
+    bricks = brick_volume(vox, 0.5, process_mesh("bricks"), spacing=sp,
+                          origin=org)
+    cam = ji.Camera.look_at((2.6, 1.7, 1.3), (0, 0, 0), (0, 0, 1), 40.0, 32, 32)
+    for name, scene in (("whole", whole), ("bricks", bricks)):
+        h = jax.device_get(ji.intersect(scene, cam.rays()))
+        np.savez(f"{name}.npz", t=h.t, hit=h.hit, surface=h.surface, normal=h.normal,
+                 nbytes=whole.volume.nbytes if name == "whole" else bricks.brick_nbytes())
+    print("ok")
+""")
+
+
+def test_two_bricks_on_two_devices_give_the_whole_volumes_hits(tmp_path):
+    """One process, 2 CPU devices, a 33^3 volume in 2 bricks (planes 0-16 and 16-32):
+    the collective minimum of t gives the whole volume's hits (mask on >= 99.99% of
+    pixels, depth within 1e-4 voxels, same normals), and one brick's arrays are at most
+    0.6 of the whole octree's."""
+    env = dict(_env(), XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    out = subprocess.run([sys.executable, "-c", _BRICKS_ONE_PROCESS], cwd=tmp_path, env=env,
+                         capture_output=True, text=True, timeout=TIMEOUT)
+    assert out.returncode == 0 and "ok" in out.stdout, out.stderr[-3000:]
+    ref, got = (np.load(tmp_path / f"{n}.npz") for n in ("whole", "bricks"))
+    assert ref["hit"].sum() > 100
+    same = got["hit"] == ref["hit"]
+    assert same.mean() >= 0.9999, f"{(~same).sum()} pixels differ"
+    both = got["hit"] & ref["hit"]
+    depth = np.abs(got["t"][both] - ref["t"][both]) / (2.0 / 32)
+    assert depth.max() <= 1e-4, depth.max()
+    assert np.all(got["surface"][both] == ref["surface"][both])
+    np.testing.assert_allclose(got["normal"][both], ref["normal"][both], atol=1e-3)
+    assert got["nbytes"] <= 0.6 * ref["nbytes"], (got["nbytes"], ref["nbytes"])
+
+
+@pytest.mark.parametrize("n, bricks, expected", [
+    (33, 2, [(0, 17), (16, 33)]),
+    (41, 3, [(0, 15), (14, 29), (28, 43)]),  # the last brick reaches past plane 40
+    (5, 4, [(0, 2), (1, 3), (2, 4), (3, 5)]),
+])
+def test_brick_bounds_share_one_plane(n, bricks, expected):
+    from jaxiso.volume._bricks import brick_bounds
+
+    got = brick_bounds(n, bricks)
+    assert got == expected
+    cells = set()
+    for start, stop in got:  # every cell (plane i to i + 1, i < n - 1) in exactly one brick
+        mine = {i for i in range(start, stop - 1) if i < n - 1}
+        assert not mine & cells
+        cells |= mine
+    assert cells == set(range(n - 1))
+
+
+def test_brick_bounds_reject_bricks_without_cells():
+    from jaxiso.volume._bricks import brick_bounds
+
+    with pytest.raises(ValueError, match="cannot be cut"):
+        brick_bounds(3, 4)
+    with pytest.raises(ValueError, match="cannot be cut"):
+        brick_bounds(5, 3)  # 4 cells as 2 + 2 + 0
