@@ -69,8 +69,9 @@ def to_global(tree, mesh: Mesh | None):
     sharding = replicated(mesh)
 
     def place(x):
-        if not isinstance(x, (jax.Array, np.ndarray)) or _on_mesh(x, mesh):
-            return x
+        if (not isinstance(x, (jax.Array, np.ndarray)) or isinstance(x, jax.core.Tracer)
+                or _on_mesh(x, mesh)):
+            return x  # python scalars, the caller's jit's values, arrays already placed
         host = np.asarray(x)
         return jax.make_array_from_callback(host.shape, sharding, lambda idx: host[idx])
 
@@ -155,10 +156,9 @@ def intersect(scene, rays: Rays, *, t_min=0.0, t_max=jnp.inf, plan: Plan | None 
 
     devices: None (the default device; or, for a brick-distributed scene, its mesh), a
     list of devices or a one-axis `jax.sharding.Mesh`, which may span processes (after
-    `jax.distributed.initialize`): rays are split over it in whole packets, and every
-    process gets all the hits (numpy-backed arrays are not made: the result is a replicated
-    jax array; `to_host` reads it). A mesh over one process's devices returns a jax array
-    as the local call does.
+    `jax.distributed.initialize`): rays are split over it in whole packets, and the
+    returned Hits are replicated over the mesh, so every process holds all of them
+    (`jaxiso.distributed.to_host` reads them as numpy in each process).
     """
     mesh = mesh_of(scene, devices)
     if mesh is None or not isinstance(rays, Rays) or math.prod(rays.shape) == 0:

@@ -26,11 +26,15 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from .._core import Hits, Plan, SceneFields, pytree_dataclass, static_field
+from .._core import LANES, Hits, Plan, SceneFields, pytree_dataclass, static_field
 from ._octree import OctreeVolume
 from ._scene import VolumeIsosurface
 
 __all__ = ["BrickedVolume", "brick_bounds", "brick_volume", "nearest_hits"]
+
+# bricks trace on persistent lanes from this many rays on the CPU (one volume: 2^16):
+# their packets each wait for a collective (`BrickedVolume.preferred_plan`)
+BRICK_LANES_FROM = 2**14
 
 
 def brick_bounds(n: int, bricks: int) -> list[tuple[int, int]]:
@@ -236,10 +240,17 @@ class BrickedVolume(SceneFields):
         return self
 
     def preferred_plan(self, n_rays: int, backend: str) -> Plan:
-        """One volume's plan (8x8 packets; persistent lanes on the CPU from 2^16 rays).
-        Packets run one collective each; lanes run one per trace but compiled 3.5x
-        longer at 32^2 (28 vs 8 s) in this file's test, as for one volume."""
-        return self.bricks.preferred_plan(n_rays, backend)
+        """32x32 packets (one collective per 1024 rays) up to 2^14 rays, and on the CPU
+        4096 persistent lanes from there (one collective per trace).
+
+        A packet's collective costs far more than its tracing. 2 local processes (gloo,
+        one thread each, a loaded 2-core box): 32^2 pixels of a 33^3 volume in 2 bricks,
+        frame 344 ms in 8x8 packets, 56 ms in 32x32, 30 ms on 1024 lanes (first call
+        13 / 17 / 46 s; one process, whole volume: 12 ms); 128^2 of 96^3: 16x16 packets
+        1720 ms, 32x32 868 ms, 4096 lanes 260 ms (first call 17 / 21 / 78 s; one process,
+        whole volume: 244 ms). Other backends: packets (unmeasured)."""
+        lanes = LANES if backend == "cpu" and n_rays >= BRICK_LANES_FROM else None
+        return Plan(tile=32, lanes=lanes)
 
     def brick_nbytes(self) -> int:
         """Bytes of one brick's arrays (what each device holds of the volume)."""
