@@ -27,8 +27,9 @@
 #   GPU_CHECK_BUDGET_S   wall seconds for the whole script (default 450, under 8 minutes);
 #                        a stage's timeout is cut to what is left of it
 #   GPU_CHECK_T_<STAGE>  a stage's own timeout in seconds (STAGE: ENV, INSTALL, TESTS,
-#                        IMPLICIT, VOLUME, TETRA)
+#                        IMPLICIT, VOLUME, TETRA, DISTRIBUTED)
 #
+#   GPU_CHECK_DISTRIBUTED 0: skip the multi-process stage (default 1)
 #   GPU_CHECK_STRICT     1: exit 1 when a stage failed (default 0: always exit 0 once the
 #                        summary is written; summary.json's "ok" says whether all passed)
 
@@ -231,6 +232,37 @@ for kind in $BENCHES; do
         [ -e "$f" ] && cp "$f" "$OUT_DIR/"
     done
 done
+
+# -- 5. more than one process (issue 30): `jaxiso render` on 1 process, then on one process
+# per GPU (CUDA_VISIBLE_DEVICES=k, joined on 127.0.0.1), rays split and a volume in bricks;
+# each process prints its render time (first call, incl. compile) to stages.log.
+# GPU_CHECK_DISTRIBUTED=0 skips it; at most 8 processes.
+distributed_check() {
+    local ngpu port k args pids rc=0
+    ngpu=$(nvidia-smi -L 2>/dev/null | wc -l)
+    [ "$ngpu" -ge 1 ] || { echo "no GPU: distributed stage has nothing to run"; return 0; }
+    [ "$ngpu" -le 8 ] || ngpu=8
+    for extra in "" "--bricks"; do
+        args=(-m jaxiso.cli render --scene volume:marschner_lobb:256 --size 1024 --out "")
+        echo "== 1 process $extra"
+        "$PYTHON" "${args[@]}" $extra || return 1
+        [ "$ngpu" -ge 2 ] || continue
+        echo "== $ngpu processes $extra"
+        port=$((20000 + RANDOM % 20000))
+        pids=()
+        for k in $(seq 0 $((ngpu - 1))); do
+            CUDA_VISIBLE_DEVICES=$k "$PYTHON" "${args[@]}" $extra --coordinator \
+                "127.0.0.1:$port" --num-processes "$ngpu" --process-id "$k" --heartbeat 30 &
+            pids+=($!)
+        done
+        for k in "${pids[@]}"; do wait "$k" || rc=1; done
+    done
+    return $rc
+}
+export -f distributed_check
+if [ "${GPU_CHECK_DISTRIBUTED:-1}" = "1" ]; then
+    stage distributed 120 bash -c distributed_check
+fi
 
 write_summary
 END=$(date +%s)
