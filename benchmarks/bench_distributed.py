@@ -1,0 +1,354 @@
+"""More than one process (issue 30): strong scaling of `ji.render` from 1 to 2 local
+processes with one thread each, the collective's share of the frame time, and the bytes
+each device holds when a volume is cut into bricks.
+
+Every configuration runs as fresh processes of this script (`--worker`), pinned one core
+each with taskset and single-threaded XLA (XLA_FLAGS="--xla_cpu_multi_thread_eigen=false
+intra_op_parallelism_threads=1"), joined by `jaxiso.distributed.initialize` on
+127.0.0.1 (gloo). The volume is written once to a .npy file that workers memory-map, so a
+brick worker reads only its own planes.
+
+Configurations (scene, how it is split):
+  implicit  barth_sextic, rays split over the processes
+  volume    marschner_lobb n^3, rays split (every process holds the whole octree)
+  bricks    the same volume cut into one brick per process (rays not split)
+
+Per configuration and process count: first call (compile + run), frame time (median of
+`--repeats` eager `ji.render` calls, the image back in every process), the collective
+alone (rays: the all-gather of the image's colours; bricks: the `nearest_hits` composite
+of one packet per 8x8 tile, as the render runs it), the scene bytes this process's device
+holds and its peak RSS. Writes <out>/distributed_cpu.json and distributed_cpu.png.
+
+    python benchmarks/bench_distributed.py [--size 128] [--n 96] [--repeats 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import platform
+import resource
+import shutil
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+HERE = pathlib.Path(__file__).resolve().parent
+ONE_THREAD = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+CONFIGS = ("implicit", "volume", "bricks")
+
+
+# ------------------------------------------------------------------------------ worker
+
+
+def _scene(config, volume_file, size):
+    """(scene, camera, whole-volume octree bytes or None) of a configuration."""
+    import numpy as np
+
+    import jaxiso as ji
+    from jaxiso.distributed import process_mesh
+    from jaxiso.volume import OctreeVolume, VolumeIsosurface, brick_volume, data
+
+    if config == "implicit":
+        return ji.surfaces.scene("barth_sextic"), ji.surfaces.camera("barth_sextic", size)
+    vox = np.load(volume_file, mmap_mode="r")
+    spacing, origin = data.box_geometry(vox.shape, *data.DOMAINS["marschner_lobb"])
+    iso = data.ISOVALUES["marschner_lobb"]
+    cam = ji.Camera.look_at((2.6, 1.8, 1.4), (0, 0, 0), (0, 0, 1), 40.0, size)
+    if config == "bricks":
+        return brick_volume(vox, iso, process_mesh("bricks"), spacing=spacing,
+                            origin=origin), cam
+    vol = OctreeVolume.from_array(np.asarray(vox), spacing=spacing, origin=origin,
+                                  progress=False)
+    return VolumeIsosurface(vol, iso), cam
+
+
+def _local_nbytes(scene) -> int:
+    import jax
+
+    return int(sum(sum(s.data.nbytes for s in leaf.addressable_shards)
+                   for leaf in jax.tree_util.tree_leaves(scene) if isinstance(leaf, jax.Array)))
+
+
+def _median_s(call, repeats, cpu=False):
+    """Median wall seconds of `repeats` calls (and, with cpu, this process's median CPU
+    seconds: what another job on the same cores does not inflate as much)."""
+    import jax
+
+    times, cpu_times = [], []
+    for _ in range(repeats):
+        t0, c0 = time.perf_counter(), time.process_time()
+        jax.block_until_ready(call())
+        times.append(time.perf_counter() - t0)
+        cpu_times.append(time.process_time() - c0)
+    if cpu:
+        return statistics.median(times), statistics.median(cpu_times)
+    return statistics.median(times)
+
+
+def _gather_time(mesh, n_rays, repeats):
+    """Seconds of the all-gather that returns an image's colours [N, 3] float32, split
+    over the mesh, to every device (what `render` does after tracing)."""
+    import jax
+    import numpy as np
+    from jax.sharding import NamedSharding, PartitionSpec
+
+    n = -(-n_rays // mesh.devices.size) * mesh.devices.size
+    host = np.random.default_rng(0).random((n, 3), np.float32)
+    split = NamedSharding(mesh, PartitionSpec(mesh.axis_names[0]))
+    x = jax.make_array_from_callback(host.shape, split, lambda i: host[i])
+    gather = jax.jit(lambda a: a, out_shardings=NamedSharding(mesh, PartitionSpec()))
+    jax.block_until_ready(gather(x))
+    return _median_s(lambda: gather(x), repeats)
+
+
+def _composite_time(mesh, n_rays, packet, repeats):
+    """Seconds of the brick composite alone: one `nearest_hits` (pmin of t, pmin of the
+    winner, one psum of hit/normal/surface/steps) per packet of `packet` rays, as a
+    BrickedVolume's render runs it (one per packet; on lanes one for all rays)."""
+    import jax
+    import jax.numpy as jnp
+    from jax.sharding import PartitionSpec
+
+    import jaxiso as ji
+    from jaxiso.volume import nearest_hits
+
+    axis = mesh.axis_names[0]
+    n_packets = -(-n_rays // packet)
+
+    def per_device(seed):
+        me = jax.lax.axis_index(axis).astype(jnp.float32)
+
+        def one(i):
+            t = jnp.sin(me + i + jnp.arange(packet, dtype=jnp.float32)) + seed[0] + 2.0
+            hits = ji.Hits(t=t, hit=t > 1.5, normal=jnp.stack([t, t, t], -1),
+                           surface=jnp.zeros(packet, jnp.int32),
+                           steps=jnp.ones(packet, jnp.int32))
+            return nearest_hits(hits, axis).t.sum()
+
+        return jax.lax.map(one, jnp.arange(n_packets, dtype=jnp.float32)).sum()[None]
+
+    run = jax.jit(jax.shard_map(per_device, mesh=mesh, in_specs=PartitionSpec(),
+                                out_specs=PartitionSpec(axis), check_vma=False))
+    seed = jnp.zeros(1)
+    jax.block_until_ready(run(seed))
+    return _median_s(lambda: run(seed), repeats)
+
+
+def worker(args) -> None:
+    from jaxiso import distributed
+
+    if args.processes > 1:
+        distributed.initialize(args.coordinator, args.processes, args.rank,
+                               heartbeat_timeout_seconds=60)
+    import jax
+
+    import jaxiso as ji
+
+    t0 = time.perf_counter()
+    scene, cam = _scene(args.config, args.volume_file, args.size)
+    build_s = time.perf_counter() - t0
+    mesh = distributed.process_mesh() if args.processes > 1 else None
+    devices = None if args.config == "bricks" else mesh
+    t0 = time.perf_counter()
+    img = ji.render(scene, cam, devices=devices)
+    first_s = time.perf_counter() - t0
+    frame_s, frame_cpu_s = _median_s(lambda: ji.render(scene, cam, devices=devices),
+                                     args.repeats, cpu=True)
+    n_rays = args.size * args.size
+    collective_s = None
+    if args.processes > 1 and args.config == "bricks":
+        plan = ji.plan_for(scene, n_rays)  # lanes: one composite of all rays per trace
+        packet = n_rays if plan.lanes else plan.packet
+        collective_s = _composite_time(scene.mesh, n_rays, packet, args.repeats)
+    elif args.processes > 1:
+        collective_s = _gather_time(mesh, n_rays, args.repeats)
+    result = dict(config=args.config, processes=args.processes, rank=jax.process_index(),
+                  build_s=build_s, first_call_s=first_s, frame_s=frame_s,
+                  frame_cpu_s=frame_cpu_s,
+                  collective_s=collective_s, scene_nbytes_here=_local_nbytes(scene),
+                  peak_rss_mib=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                  plan=repr(ji.plan_for(scene, n_rays if devices is None
+                                        else -(-n_rays // args.processes))),
+                  covered=float((img.sum(-1) < 2.97).mean()))
+    if args.config == "bricks":
+        result["brick_nbytes"] = scene.brick_nbytes()
+    print("RESULT " + json.dumps(result), flush=True)
+
+
+# ------------------------------------------------------------------------------ driver
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _run(config, processes, args, volume_file) -> list[dict]:
+    """One configuration on `processes` fresh local processes, core k for process k."""
+    env = dict(os.environ, XLA_FLAGS=ONE_THREAD, JAX_PLATFORMS="cpu")
+    port = _free_port()
+    pin = shutil.which("taskset")
+    procs = []
+    for rank in range(processes):
+        cmd = [sys.executable, str(pathlib.Path(__file__).resolve()), "--worker",
+               "--config", config, "--processes", str(processes), "--rank", str(rank),
+               "--coordinator", f"127.0.0.1:{port}", "--size", str(args.size),
+               "--repeats", str(args.repeats), "--volume-file", volume_file]
+        if pin:
+            cmd = [pin, "-c", str(rank % (os.cpu_count() or 1))] + cmd
+        procs.append(subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE,
+                                      stderr=subprocess.PIPE, text=True))
+    results = []
+    for p in procs:
+        out, err = p.communicate(timeout=args.timeout)
+        lines = [ln for ln in out.splitlines() if ln.startswith("RESULT ")]
+        if p.returncode != 0 or not lines:
+            raise RuntimeError(f"{config} x{processes} failed:\n{err[-3000:]}")
+        results.append(json.loads(lines[-1][7:]))
+    return results
+
+
+def _summary(rows) -> dict:
+    """Per configuration: frame times at 1 and 2 processes, speedup, collective share,
+    bytes per device and peak RSS (max over processes)."""
+    out = {}
+    for config in CONFIGS:
+        one = [r for r in rows if r["config"] == config and r["processes"] == 1]
+        two = [r for r in rows if r["config"] == config and r["processes"] == 2]
+        if not one or not two:
+            continue
+        f1 = one[0]["frame_s"]
+        f2 = max(r["frame_s"] for r in two)
+        coll = max(r["collective_s"] for r in two)
+        c1 = one[0]["frame_cpu_s"]
+        c2 = max(r["frame_cpu_s"] for r in two)
+        out[config] = dict(frame_1_s=f1, frame_2_s=f2, speedup=f1 / f2,
+                           efficiency=f1 / f2 / 2, collective_s=coll,
+                           frame_cpu_1_s=c1, frame_cpu_2_s=c2, cpu_speedup=c1 / c2,
+                           collective_share=coll / f2,
+                           first_call_1_s=one[0]["first_call_s"],
+                           first_call_2_s=max(r["first_call_s"] for r in two),
+                           scene_mib_per_device_1=one[0]["scene_nbytes_here"] / 2**20,
+                           scene_mib_per_device_2=max(r["scene_nbytes_here"]
+                                                      for r in two) / 2**20,
+                           peak_rss_mib_1=one[0]["peak_rss_mib"],
+                           peak_rss_mib_2=max(r["peak_rss_mib"] for r in two))
+    return out
+
+
+def _chart(summary, path):
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    names = list(summary)
+    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.6))
+    x = range(len(names))
+    a.bar([i - 0.2 for i in x], [summary[n]["frame_1_s"] for n in names], 0.4,
+          label="1 process")
+    a.bar([i + 0.2 for i in x], [summary[n]["frame_2_s"] for n in names], 0.4,
+          label="2 processes")
+    a.bar([i + 0.2 for i in x], [summary[n]["collective_s"] for n in names], 0.4,
+          label="of which the collective", color="k", alpha=0.5)
+    a.set_xticks(list(x), names)
+    a.set_ylabel("frame s (median, 1 thread per process)")
+    a.legend(fontsize=8)
+    b.bar([i - 0.2 for i in x], [summary[n]["scene_mib_per_device_1"] for n in names], 0.4,
+          label="1 process")
+    b.bar([i + 0.2 for i in x], [summary[n]["scene_mib_per_device_2"] for n in names], 0.4,
+          label="2 processes")
+    b.set_xticks(list(x), names)
+    b.set_ylabel("scene MiB per device")
+    b.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    return str(path)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--size", type=int, default=128, help="image edge in pixels")
+    parser.add_argument("--n", type=int, default=96, help="volume edge in voxels")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--configs", nargs="*", default=list(CONFIGS), choices=CONFIGS)
+    parser.add_argument("--out", default=str(HERE / "results"))
+    parser.add_argument("--timeout", type=int, default=900, help="seconds per run")
+    parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--config", help=argparse.SUPPRESS)
+    parser.add_argument("--processes", type=int, default=1, help=argparse.SUPPRESS)
+    parser.add_argument("--rank", type=int, default=0, help=argparse.SUPPRESS)
+    parser.add_argument("--coordinator", help=argparse.SUPPRESS)
+    parser.add_argument("--volume-file", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.worker:
+        worker(args)
+        return 0
+
+    import jax
+    import numpy as np
+
+    from jaxiso.volume import data
+
+    print(f"bench_distributed: {args.size}^2 pixels, volume {args.n}^3, 1 vs 2 processes "
+          f"one thread each (jax {jax.__version__}, {os.cpu_count()} cores)", flush=True)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        volume_file = os.path.join(tmp, "volume.npy")
+        np.save(volume_file, data.marschner_lobb(args.n))
+        for config in args.configs:
+            for processes in (1, 2):
+                if config == "bricks" and processes == 1:
+                    # one brick = the whole volume, as one device sees it
+                    got = _run("volume", 1, args, volume_file)
+                    got = [dict(r, config="bricks") for r in got]
+                else:
+                    got = _run(config, processes, args, volume_file)
+                rows.extend(got)
+                for r in got:
+                    coll = r["collective_s"]
+                    print(f"  {config:<9} x{processes} rank {r['rank']}: first "
+                          f"{r['first_call_s']:6.2f} s, frame {r['frame_s'] * 1e3:8.1f} ms"
+                          f" (cpu {r['frame_cpu_s'] * 1e3:7.1f} ms)"
+                          + (f", collective {coll * 1e3:7.2f} ms" if coll else "")
+                          + f", scene here {r['scene_nbytes_here'] / 2**20:6.2f} MiB, "
+                          f"peak RSS {r['peak_rss_mib']:6.0f} MiB", flush=True)
+    summary = _summary(rows)
+    print(f"\n{'config':<10}{'1 proc ms':>10}{'2 proc ms':>10}{'speedup':>9}"
+          f"{'cpu x':>7}{'coll %':>8}{'MiB/dev 1':>11}{'MiB/dev 2':>11}")
+    for name, s in summary.items():
+        print(f"{name:<10}{s['frame_1_s'] * 1e3:>10.1f}{s['frame_2_s'] * 1e3:>10.1f}"
+              f"{s['speedup']:>9.2f}{s['cpu_speedup']:>7.2f}"
+              f"{100 * s['collective_share']:>8.1f}"
+              f"{s['scene_mib_per_device_1']:>11.2f}{s['scene_mib_per_device_2']:>11.2f}")
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    chart = _chart(summary, out / "distributed_cpu.png")
+    result = dict(benchmark="distributed", backend="cpu", jax=jax.__version__,
+                  machine=platform.machine(), cpu_count=os.cpu_count(),
+                  size=args.size, volume_n=args.n, repeats=args.repeats,
+                  threads_per_process=1, xla_flags=ONE_THREAD,
+                  pinned=shutil.which("taskset") is not None,
+                  timing="frame: median of repeats eager ji.render calls after the first "
+                         "(image back in every process), wall and this process's CPU "
+                         "seconds; collective: the same median of a jit running only the "
+                         "collective; 2-process figures: the slower process's",
+                  load_average=os.getloadavg(),
+                  rows=rows, summary=summary, chart=chart)
+    path = out / "distributed_cpu.json"
+    path.write_text(json.dumps(result, indent=1))
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
