@@ -4,10 +4,11 @@ Layers, bottom up: the core (`Rays`, `Hits`, `Plan`, the `Scene` protocol), incl
 arithmetic (`Interval`, `Affine`, `extend`, `register_rule`), scenes (`ImplicitSurface`,
 `CSG`, `VolumeIsosurface` over `OctreeVolume` / `MacrocellGrid`, `TetIsosurface` over
 `TetMesh`), and the render layer (`Camera`, `plan_for`, `intersect`, `render`,
-`save_png`). `surfaces` is the catalogue of the seed's test surfaces.
+`save_png`). `surfaces` is the catalogue of the seed's test surfaces; `distributed` joins
+a multi-process run (`initialize`, `process_mesh`).
 """
 
-from . import arith
+from . import arith, distributed
 from ._core import Hits, Plan, Rays, Scene
 from .arith import Affine, Interval, aa, extend, ia, interval, register_rule
 from .implicit import ImplicitSurface, surfaces
@@ -30,7 +31,8 @@ from .volume import MacrocellGrid, OctreeVolume, VolumeIsosurface, VolumeSequenc
 __version__ = "0.3.0"
 
 __all__ = ["Interval", "interval", "Affine", "extend", "register_rule", "ia", "aa",
-           "arith", "surfaces", "ImplicitSurface", "CSG", "Camera", "Rays", "Hits", "Image",
+           "arith", "distributed", "surfaces", "ImplicitSurface", "CSG", "Camera", "Rays",
+           "Hits", "Image",
            "Scene", "Plan", "plan_for",
            "Light", "Shading", "intersect", "render", "save_png", "to_tiles",
            "from_tiles", "OctreeVolume", "VolumeIsosurface", "MacrocellGrid",
