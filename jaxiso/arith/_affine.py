@@ -24,7 +24,11 @@ accumulated error term. ``n = 1`` is the seed's float3 form (Algorithm 6).
 * min/max return an operand exactly where their difference has a sign, and else
   ``b + relu(a - b)`` with relu's chord (`relu`), so a neuron that is off drops its error.
 * Comparisons return the three-valued `Interval` of bools of the interval module; `where`
-  keeps the chosen branch exactly and takes the hull where the condition is unknown.
+  keeps the chosen branch exactly and, where the condition is unknown, joins the cases
+  as one form (their mean, the error covering half their difference; by a chord in the
+  compared difference when `extend` passes it), or their hull where that is tighter.
+* Forms over fewer noise symbols (constants lifted with one) meet others padded with
+  zero deviations (`with_symbols`): every rule lifts its operands to one symbol count.
 
 Empty results carry a NaN error term (and centre), and so does a NaN constant (the piece
 of a domain where f is NaN has no surface, as in IA); an overflowed form whose centre
@@ -59,15 +63,16 @@ from ._affine_type import (  # noqa: F401 - re-exported: aa is the namespace
     from_interval,
     radius,
     to_interval,
+    with_symbols,
 )
 from ._interval import Interval
 
 __all__ = [
-    "Affine", "from_interval", "to_interval", "as_affine", "radius",
+    "Affine", "from_interval", "to_interval", "as_affine", "with_symbols", "radius",
     "add", "sub", "neg", "mul", "div", "recip", "square", "ipow", "pow", "sqrt", "exp",
-    "log", "abs", "cosh", "sinh", "tanh", "atan", "cbrt", "sin", "cos", "tan", "floor",
-    "ceil", "sign", "fmod", "minimum", "maximum", "clamp", "lt", "le", "gt", "ge", "eq",
-    "ne", "select_n", "where", "widen",
+    "log", "expm1", "log1p", "abs", "cosh", "sinh", "tanh", "atan", "cbrt", "sin", "cos",
+    "tan", "floor", "ceil", "sign", "fmod", "minimum", "maximum", "clamp", "lt", "le", "gt",
+    "ge", "eq", "ne", "select_n", "where", "widen",
 ]
 
 
@@ -282,6 +287,8 @@ def div(a, b) -> Affine:
         safe = jnp.where(b == 0, 1.0, b)
         scaled = Affine(a.center / safe, a.dev / safe[..., None], a.err / jnp.abs(safe),
                         a.defined)
+        if _is_concrete(b) and bool(np.all(np.asarray(b) != 0)):
+            return scaled  # the usual x / 8: no recip of the constant to select from
         return _select(b != 0, scaled, mul(a, recip(b)))
     a, b = _lift(a, b)
     return mul(a, recip(b))
@@ -328,14 +335,20 @@ def relu(a) -> Affine:
     return _select(moderate, out, _interval_fallback(ia.maximum(iv, 0.0), a.n))
 
 
-def _is_zero(x) -> bool:
-    """x is a concrete (not traced, not lifted) zero: relu's max(x, 0)."""
+def _is_concrete(x) -> bool:
+    """x is a concrete array (not traced, not lifted)."""
     if isinstance(x, (Affine, Interval, jax.core.Tracer)):
         return False
     try:
-        return bool(np.all(np.asarray(x) == 0))
+        np.asarray(x)
     except (TypeError, ValueError):
         return False
+    return True
+
+
+def _is_zero(x) -> bool:
+    """x is a concrete (not traced, not lifted) zero: relu's max(x, 0)."""
+    return _is_concrete(x) and bool(np.all(np.asarray(x) == 0))
 
 
 def maximum(a, b) -> Affine:
@@ -431,6 +444,23 @@ def exp(a) -> Affine:
     (a,) = _lift(a)
     iv = _range(a)
     return _chebyshev(a, jnp.exp, jnp.exp, jnp.log, True, iv, ia.exp(iv))
+
+
+def expm1(a) -> Affine:
+    """e^x - 1: convex and increasing like exp (Chebyshev), accurate near 0 where exp(x)
+    - 1 cancels; ``where(h > 0, h, expm1(h))`` (elu) joins two close forms."""
+    (a,) = _lift(a)
+    iv = _range(a)
+    return _chebyshev(a, jnp.expm1, jnp.exp, jnp.log, True, iv,
+                      ia.monotone_increasing(jnp.expm1)(iv))
+
+
+def log1p(a) -> Affine:
+    """log(1 + x) on x >= -1: concave and increasing (Chebyshev)."""
+    (a,) = _lift(a)
+    iv = ia.restrict(_range(a), -1.0)
+    return _chebyshev(a, jnp.log1p, lambda v: 1.0 / (1.0 + v), lambda al: 1.0 / al - 1.0,
+                      False, iv, ia.monotone_increasing(jnp.log1p)(iv))
 
 
 def cosh(a) -> Affine:
@@ -529,18 +559,127 @@ def _compare(fn):
 lt, le, gt, ge, eq, ne = (_compare(f) for f in (ia.lt, ia.le, ia.gt, ia.ge, ia.eq, ia.ne))
 
 
-def select_n(which, *cases) -> Affine:
-    """Exact case where `which` is certain; the interval hull elsewhere."""
+def _join(a: Affine, b: Affine) -> Affine:
+    """One form holding every value of `a` and of `b` for the same noise symbols: their
+    mean ``m = (a + b) / 2`` with the error ``max(a.err, b.err) + |(a - b)'| / 2``, where
+    ``(a - b)'`` is the difference without error terms, bounded by ``|centre| + sum |dev|``
+    (``a = m + (a - b) / 2`` and ``b = m - (a - b) / 2`` for each value of the symbols,
+    and each keeps its own error term). Parts that the cases share cancel in the
+    difference, so two branches that nearly agree (where(h > 0, h, expm1(h))) give a
+    form almost as tight as either. The rounding of the mean and of the bound is padded
+    by ulps of the magnitudes involved. An empty case (NaN error term) adds nothing."""
+    half_diff = 0.5 * (jnp.abs(a.center - b.center)
+                       + jnp.sum(jnp.abs(a.dev - b.dev), axis=-1))
+    scale = jnp.abs(a.center) + jnp.abs(b.center) + radius(a) + radius(b)
+    err = jnp.maximum(a.err, b.err) + half_diff + _pad(scale, a.center.dtype, 4.0)
+    joined = Affine(0.5 * (a.center + b.center), 0.5 * (a.dev + b.dev), err,
+                    a.defined & b.defined)
+    return _select(_is_empty(a), b, _select(_is_empty(b), a, joined))
+
+
+def _lines_extreme(slopes, intercepts, mu, pick):
+    """pick (max or min) over the lines ``slope mu + intercept`` (last axis) at `mu`."""
+    return pick(slopes * mu[..., None] + intercepts, axis=-1)
+
+
+def _join_on_sign(a: Affine, b: Affine, g: Affine) -> Affine:
+    """`_join` for a case `a` taken only where ``g >= 0`` and `b` only where ``g <= 0``
+    (``where(p > q, a, b)`` with ``g = p - q``): a chord in g, as relu's.
+
+    With ``g' = g.center + g.dev . e`` (g without its error term), the point's own g lies
+    within ``g.err`` of g', so `a` is taken only where ``g' >= -g.err`` and `b` only
+    where ``g' <= g.err``. Write the difference ``(a - b)' = kappa g' + rho`` (kappa by
+    least squares on the deviations, rho bounded by its centre +- its deviations) and
+    the result ``m' + mu g' + [lo, hi]``, m' the cases' mean: a value of `a` is
+    ``m' + (kappa/2) g' + rho/2 + a.err u``, of `b` ``m' - (kappa/2) g' - rho/2 +
+    b.err u``, so the residual on each side is affine in g' over its half of g's range,
+    and [lo, hi] is the hull of both. Its width is convex and piecewise linear in mu:
+    the least is at a crossing of two of the end lines, all of which are tried. With
+    ``a = h``, ``b = 0``, ``g = h`` this is relu's chord; for cases unrelated to g it is
+    no wider than the plain join at mu = 0 (which the caller also tries)."""
+    dt = a.center.dtype
+    cg, dg = g.center, g.dev
+    rg = jnp.sum(jnp.abs(dg), axis=-1)
+    g_lo, g_hi = cg - rg, cg + rg
+    slack = g.err + _pad(jnp.abs(cg) + radius(g), dt)
+    ta = (jnp.clip(-slack, g_lo, g_hi), g_hi)  # g' where `a` may be taken
+    tb = (g_lo, jnp.clip(slack, g_lo, g_hi))   # and `b`
+    cd, dd = a.center - b.center, a.dev - b.dev
+    gg = jnp.sum(dg * dg, axis=-1)
+    kappa = jnp.where(gg > 0, jnp.sum(dd * dg, axis=-1) / jnp.where(gg > 0, gg, 1.0), 0.0)
+    rho_c = cd - kappa * cg
+    rho_r = jnp.sum(jnp.abs(dd - kappa[..., None] * dg), axis=-1)
+    # the ends of each side's residual as lines in mu: (kappa/2 -+ ... - mu) t + c
+    hi_c = (0.5 * (rho_c + rho_r) + a.err, 0.5 * (rho_r - rho_c) + b.err)
+    lo_c = (0.5 * (rho_c - rho_r) - a.err, -0.5 * (rho_c + rho_r) - b.err)
+    ts = jnp.stack([*ta, *tb], axis=-1)
+    sigma = jnp.asarray([0.5, 0.5, -0.5, -0.5], dt)
+    slopes = -ts
+    base = sigma * kappa[..., None] * ts
+    hi_i = base + jnp.stack([hi_c[0], hi_c[0], hi_c[1], hi_c[1]], axis=-1)
+    lo_i = base + jnp.stack([lo_c[0], lo_c[0], lo_c[1], lo_c[1]], axis=-1)
+    cands = [jnp.zeros_like(cg)]
+    for ends in (hi_i, lo_i):
+        for i in range(4):
+            for j in range(i + 1, 4):
+                ds = slopes[..., i] - slopes[..., j]
+                mu = (ends[..., j] - ends[..., i]) / jnp.where(ds != 0, ds, 1.0)
+                cands.append(jnp.where((ds != 0) & jnp.isfinite(mu), mu, 0.0))
+    cands = jnp.stack(cands, axis=-1)  # [..., 13]
+    width = (_lines_extreme(slopes[..., None, :], hi_i[..., None, :], cands, jnp.max)
+             - _lines_extreme(slopes[..., None, :], lo_i[..., None, :], cands, jnp.min))
+    width = jnp.where(jnp.isnan(width), jnp.inf, width)
+    mu = jnp.take_along_axis(cands, jnp.argmin(width, axis=-1)[..., None], axis=-1)[..., 0]
+    hi = _lines_extreme(slopes, hi_i, mu, jnp.max)
+    lo = _lines_extreme(slopes, lo_i, mu, jnp.min)
+    scale = (jnp.abs(a.center) + jnp.abs(b.center) + radius(a) + radius(b)
+             + jnp.abs(mu) * (jnp.abs(cg) + rg) + jnp.abs(hi) + jnp.abs(lo))
+    return Affine(0.5 * (a.center + b.center) + mu * cg + 0.5 * (hi + lo),
+                  0.5 * (a.dev + b.dev) + mu[..., None] * dg,
+                  0.5 * (hi - lo) + _pad(scale, dt), a.defined & b.defined)
+
+
+def select_n(which, *cases, sign: Affine | None = None) -> Affine:
+    """Exact case where `which` is certain. Elsewhere the cases it may take are joined as
+    one form (`_join`: their mean, the error covering half their difference), or their
+    interval hull where the join's error term exceeds the hull's radius. A join a little
+    wider than the hull keeps the correlation that the next operations cancel: on a
+    3 x 32 elu MLP (``where(h > 0, h, exp(min(h, 0)) - 1)``) the enclosure was 1.5x
+    narrower so than when the narrower of the two by radius was kept
+    (benchmarks/bench_affine_where.py, NOTES session 17).
+
+    `sign` (optional, two cases): a form g with ``which`` true only where ``g >= 0`` and
+    false only where ``g <= 0`` (from the comparison that made it: `extend` passes it);
+    the join then also tries a chord in g (`_join_on_sign`), as relu's."""
     which = ia.as_interval(which)
-    cases = _lift(*cases)
-    hull = _interval_fallback(ia.select_n(which, *[_range(c) for c in cases]),
-                              cases[0].n)
-    out = hull
+    if sign is not None and len(cases) == 2:  # one symbol count for the cases and g
+        *cases, sign = _lift(*cases, sign)
+    else:
+        cases, sign = _lift(*cases), None
+    # the hull as a form (its centre and radius rounded: an ulp more)
+    hull = widen(_interval_fallback(ia.select_n(which, *[_range(c) for c in cases]),
+                                    cases[0].n))
+    w_lo, w_hi = which.lo.astype(jnp.int32), which.hi.astype(jnp.int32)
+    joined, started = cases[0], w_lo <= 0
+    for i, c in enumerate(cases[1:], 1):
+        take = (w_lo <= i) & (i <= w_hi)
+        joined = _select(take, _select(started, _join(joined, c), c), joined)
+        started = started | take
+    if sign is not None:
+        chord = _join_on_sign(cases[1], cases[0], _broadcast(sign, hull.shape))
+        better = _finite(chord) & ~(chord.err > joined.err)
+        joined = _select(better & (w_lo == 0) & (w_hi == 1), chord, joined)
+    # the hull where the join's uncorrelated part is wider than the hull itself
+    tighter = _finite(joined) & ~(joined.err > radius(hull))
+    out = _select(tighter, joined, hull)
+    out = Affine(out.center, out.dev, out.err, hull.defined)  # the cases it may take
     certain = which.lo == which.hi
-    w = which.lo.astype(jnp.int32)
     for i, c in enumerate(cases):
-        out = _select(certain & (w == i), c, out)
+        out = _select(certain & (w_lo == i), c, out)
     return out
+
+
+select_n.takes_sign = True
 
 
 def where(condition, x, y) -> Affine:

@@ -121,12 +121,25 @@ def from_interval(x, symbol: int | None = None, n: int = 1) -> Affine:
     return Affine(c, dev, err, x.defined)
 
 
-def as_affine(x, n: int) -> Affine:
-    """Affine unchanged; an Interval on the error term; an array as an exact point."""
-    if isinstance(x, Affine):
-        if x.n != n:
-            raise ValueError(f"mixing affine forms with {x.n} and {n} noise symbols")
+def with_symbols(x: Affine, n: int) -> Affine:
+    """x over `n` noise symbols: its own are the first ``x.n``, the others get zero
+    deviations (the same set). Symbols are numbered alike in every form of one
+    evaluation (the coordinates' first, then the fresh ones), so a form with fewer of
+    them -- a constant or an Interval lifted with one symbol -- meets a form that took
+    fresh ones by this padding. Fewer than ``x.n`` is an error: no symbol is dropped."""
+    if x.n == n:
         return x
+    if x.n > n:
+        raise ValueError(f"an affine form with {x.n} noise symbols cannot have {n}")
+    pad = [(0, 0)] * (np.ndim(x.dev) - 1) + [(0, n - x.n)]
+    return Affine(x.center, jnp.pad(x.dev, pad), x.err, x.defined)
+
+
+def as_affine(x, n: int) -> Affine:
+    """An Affine over `n` noise symbols (padded with zero deviations: `with_symbols`);
+    an Interval on the error term; an array as an exact point."""
+    if isinstance(x, Affine):
+        return with_symbols(x, n)
     if isinstance(x, Interval):
         return from_interval(x, None, n)
     x = jnp.asarray(x)
@@ -140,13 +153,12 @@ def as_affine(x, n: int) -> Affine:
 
 
 def _n_of(*xs) -> int:
-    for x in xs:
-        if isinstance(x, Affine):
-            return x.n
-    return 1
+    """The symbol count the operands meet at: the largest of their forms' (1 if none)."""
+    return max([x.n for x in xs if isinstance(x, Affine)], default=1)
 
 
 def _lift(*xs):
+    """The operands as affine forms over one symbol count (`_n_of`)."""
     n = _n_of(*xs)
     return [as_affine(x, n) for x in xs]
 

@@ -20,25 +20,30 @@ from ._interval import Interval
 from ._lift import is_lifted, shape_of
 
 
-def move_data(prim, params, invals, operands: slice):
+def move_data(prim, params, invals, operands: slice) -> list:
     """Apply a primitive that only moves data (reshape, gather, concatenate, ...) to each
     component of its data operands ``invals[operands]``; the rest (indices) must be
-    constants."""
+    constants. Returns the list of results (several for optimization_barrier)."""
     data = invals[operands]
     rest = invals[len(data):]
     if any(is_lifted(r) for r in rest):
         raise NotImplementedError(
             f"jaxiso.extend: '{prim.name}' with a box-dependent index is not supported; "
             "indices must not depend on x, y, z (use jnp.where/select instead)")
-    bind = lambda *xs: prim.bind(*xs, *rest, **params)  # noqa: E731
+    def bind(*xs):  # always a list of results
+        out = prim.bind(*xs, *rest, **params)
+        return list(out) if prim.multiple_results else [out]
+
     if any(isinstance(d, Affine) for d in data):
         data = aa._lift(*data)
         devs = jax.vmap(bind, in_axes=-1, out_axes=-1)(*[d.dev for d in data])
-        return Affine(bind(*[d.center for d in data]), devs, bind(*[d.err for d in data]),
-                      bind(*[d.defined for d in data]))
+        return [Affine(*parts) for parts in zip(
+            bind(*[d.center for d in data]), devs, bind(*[d.err for d in data]),
+            bind(*[d.defined for d in data]))]
     data = [ia.as_interval(d) for d in data]
-    return Interval(bind(*[d.lo for d in data]), bind(*[d.hi for d in data]),
-                    bind(*[jnp.broadcast_to(d.defined, jnp.shape(d.lo)) for d in data]))
+    return [Interval(*parts) for parts in zip(
+        bind(*[d.lo for d in data]), bind(*[d.hi for d in data]),
+        bind(*[jnp.broadcast_to(d.defined, jnp.shape(d.lo)) for d in data]))]
 
 
 # ------------------------------------------------------------------------------ casts

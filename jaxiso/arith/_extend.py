@@ -59,6 +59,9 @@ class _Context:
     arithmetic: str
     outward: bool
     fresh: _FreshSymbols | None = None
+    # affine: the sign form of each comparison's result, by id: {id: (result, g)}, with
+    # the result true only where g >= 0 and false only where g <= 0 (`_note_sign`)
+    signs: dict | None = None
 
 
 # Elementwise primitives whose affine rules add linearisation error (the error terms
@@ -97,6 +100,7 @@ class _FreshSymbols:
         if k <= 0:
             return out
         base, self.next = self.next, self.next + k
+        out = aa.with_symbols(out, self.end)  # a form lifted from constants has fewer
         finite = jnp.isfinite(out.err)
         vals, idx = lax.top_k(jnp.where(finite, out.err, 0.0), k)
         chosen = jnp.arange(out.err.shape[0])[:, None] == idx[None, :]  # [h, k]
@@ -192,13 +196,15 @@ def extend(f: Callable, arithmetic: str = "interval", rounding: str = "fast",
         def run(flat, fresh):
             """F on the flat batch with `fresh` more symbols (all of them handed out to
             the operations' error terms); returns (out, symbols handed out)."""
-            flat = [_more_symbols(c, fresh) if isinstance(c, Affine) else c for c in flat]
+            flat = [aa.with_symbols(c, c.n + fresh) if isinstance(c, Affine) else c
+                    for c in flat]
             n = flat[0].n if arithmetic == "affine" else 0
             params_in = [_lift.lift_param(p, arithmetic, n) for p in param_leaves]
             symbols = _FreshSymbols(n - fresh, n, fresh_per_op) if fresh else None
 
             def eval_point(point_coords):
-                run_ctx = dataclasses.replace(ctx, fresh=symbols) if fresh else ctx
+                run_ctx = dataclasses.replace(ctx, fresh=symbols if fresh else None,
+                                              signs={} if arithmetic == "affine" else None)
                 out = _eval_jaxpr(closed.jaxpr, closed.consts,
                                   [*point_coords, *params_in], run_ctx)[0]
                 return _lift.as_result(out, point_coords, arithmetic)
@@ -230,12 +236,6 @@ def _count_fresh(run, flat, cap: int) -> int:
     counted = []
     jax.eval_shape(lambda fl: counted.append(run(fl, cap)[1]) or jnp.zeros(()), flat)
     return counted[0]
-
-
-def _more_symbols(a: Affine, k: int) -> Affine:
-    """a with k more noise symbols (zero deviations)."""
-    pad = [(0, 0)] * (np.ndim(a.dev) - 1) + [(0, k)]
-    return dataclasses.replace(a, dev=jnp.pad(a.dev, pad))
 
 
 def _check_output(closed, f):
@@ -323,7 +323,7 @@ def _apply(eqn, invals, ctx: _Context) -> list:
     if record.same_args is not None and len(invals) == 2 and invals[0] is invals[1]:
         return [_same_var_truth(invals[0], record.same_args)]
     if record.data_operands is not None:
-        return [move_data(prim, params, invals, record.data_operands)]
+        return move_data(prim, params, invals, record.data_operands)
     # Affine forms carry reals; integer and boolean values stay Intervals, so an
     # equation whose lifted inputs are all Intervals uses the interval rule.
     uses_affine = any(isinstance(x, Affine) for x in invals)
@@ -333,7 +333,13 @@ def _apply(eqn, invals, ctx: _Context) -> list:
             f"jaxiso.extend: no {ctx.arithmetic} rule for the JAX primitive '{name}'. "
             f"Register one with jaxiso.register_rule('{name}', rule, "
             f"arithmetic='{ctx.arithmetic}'), or rewrite f without it.")
-    out = rule(*invals, **params)
+    sign = _sign_of(ctx, invals[0]) if name == "select_n" and len(invals) == 3 else None
+    if sign is not None and getattr(rule, "takes_sign", False):
+        out = rule(*invals, sign=sign)
+    else:
+        out = rule(*invals, **params)
+    if ctx.signs is not None and uses_affine:
+        _note_sign(ctx, name, invals, out)
     if prim.multiple_results:
         return list(out)
     if ctx.outward:
@@ -341,6 +347,28 @@ def _apply(eqn, invals, ctx: _Context) -> list:
     if ctx.fresh is not None and name in _NONLINEAR:
         out = ctx.fresh.absorb(out, name not in _KINKS)
     return [out]
+
+
+# comparisons whose truth is the sign of a difference: name -> (minuend, subtrahend)
+_SIGN_OF = {"gt": (0, 1), "ge": (0, 1), "lt": (1, 0), "le": (1, 0)}
+
+
+def _note_sign(ctx: _Context, name, invals, out):
+    """Remember which form's sign a comparison's (or its negation's) result is, so that
+    a `select_n` on it can join its cases by a chord in that form (`aa.select_n`)."""
+    if name in _SIGN_OF:
+        i, j = _SIGN_OF[name]
+        ctx.signs[id(out)] = (out, aa.sub(invals[i], invals[j]))
+    elif name == "not" and _sign_of(ctx, invals[0]) is not None:
+        ctx.signs[id(out)] = (out, aa.neg(_sign_of(ctx, invals[0])))
+
+
+def _sign_of(ctx: _Context, cond):
+    """The form g of a remembered comparison result `cond` (None if none)."""
+    if ctx.signs is None:
+        return None
+    held = ctx.signs.get(id(cond))
+    return held[1] if held is not None and held[0] is cond else None
 
 
 def _in_interval(jaxpr, consts, invals, ctx: _Context) -> list:

@@ -100,7 +100,7 @@ def lift_coordinates(coords, arithmetic: str, outward: bool, n_symbols: int | No
         return [as_range(c) for c in coords]
     given = [c.n for c in coords if isinstance(c, Affine)]
     if given:
-        out = [aa.as_affine(c, given[0]) for c in coords]
+        out = [aa.as_affine(c, max(given)) for c in coords]
     else:
         k = sum(isinstance(c, Interval) for c in coords)
         n = max(1, k) if n_symbols is None else int(n_symbols)

@@ -222,6 +222,10 @@ for _name, _fn, _lo, _hi, _inc in (
         ("erf", jax.scipy.special.erf, -jnp.inf, jnp.inf, True)):
     _elementwise(_name, ia.monotone_on(_fn, _lo, _hi, _inc), ulps=_transcendental_ulps(_name))
 
+# convex / concave on their domain: Chebyshev forms keep the correlation
+for _name, _aa in (("expm1", aa.expm1), ("log1p", aa.log1p)):
+    RULES[_name] = dataclasses.replace(RULES[_name], affine=_drop_params(_aa))
+
 RULES["pow"] = Rule(_drop_params(ia.pow), _drop_params(aa.pow), ulps=_ulps.power)
 RULES["integer_pow"] = Rule(lambda x, *, y: ia.ipow(x, y), lambda x, *, y: aa.ipow(x, y),
                             ulps=_ulps.integer_power)
@@ -233,7 +237,7 @@ for _name, _ia, _aa, _same in (("lt", ia.lt, aa.lt, False), ("le", ia.le, aa.le,
     _elementwise(_name, _ia, _aa, same_args=_same)
 for _name, _fn in (("and", ia.logical_and), ("or", ia.logical_or), ("not", ia.logical_not)):
     _elementwise(_name, _fn, _fn)
-_elementwise("select_n", ia.select_n, aa.select_n)
+RULES["select_n"] = Rule(_drop_params(ia.select_n), aa.select_n)  # extend passes sign=
 
 # ---------------------------------------------------------------------- array tables
 
