@@ -17,12 +17,17 @@ fatal):
   csg3d      a generated CSG of 400 primitives at 256^2 in perspective with
              `program.cast` (the solid): compile, run, hit-mask agreement with float64
              dense sampling on 1,500 random pixels.
+  slab       Prospero as a 3D slab of text (max(prospero, |z| - 0.25)) through the default
+             call, rays down z, 256^2 and 1024^2, next to dense evaluation of prospero at
+             the pixel centres: first call, median call, peak RSS, agreement, registers.
+  memory     peak RSS of the default call on generated CSG scenes against program length
+             (50-800 primitives at 128^2) and image size (64^2-256^2).
   scene3d    the same model through the user's default call, ``ji.render(
              ji.ImplicitSurface(prog, lo, hi), cam)`` (the scene plans the tape path):
              first call, median render, median intersect, agreement, per-level tapes.
 Charts: <out>_compile.png (compile time against program length).
 
-Usage: python benchmarks/bench_programs.py [--sections crossover,prospero,noprune,csg3d]
+Usage: python benchmarks/bench_programs.py [--sections crossover,prospero,slab,memory,...]
        [--quick] [--out benchmarks/results/programs_cpu.json]
 Only public jaxiso names are used.
 """
@@ -265,8 +270,74 @@ def case_scene3d(n_prims=400, size=256, seed=1, repeats=3, noprune=False):
                 noprune_intersect_s=stats.get("noprune_intersect_s"), peak_rss_mb=_rss_mb())
 
 
+def _slab_program(prog):
+    """Prospero as a 3D slab of text: inside where prospero < 0 and |z| < 0.25."""
+    import jax.numpy as jnp
+    return lambda x, y, z: jnp.maximum(prog(x, y, z), jnp.abs(z) - 0.25)
+
+
+def case_slab(n, repeats=2):
+    """Prospero as a 3D slab through the user's default call, ``ji.intersect(
+    ji.ImplicitSurface(slab, lo, hi), cam.rays())``, rays straight down z: first call,
+    median call after, peak RSS, the tape path's registers and batches, and agreement of
+    the hit mask with float64 ``prospero < 0`` at the pixel centres (the same picture)."""
+    import numpy as np
+    from reference_program64 import vm64
+
+    import jaxiso as ji
+    from jaxiso.render import to_zorder
+    prog = ji.implicit.load_vm(PROSPERO)
+    cam = _prospero_camera(n)
+    rays = cam.rays()
+    t0 = time.perf_counter()
+    scene = ji.ImplicitSurface(_slab_program(prog), (-1, -1, -1), (1, 1, 1))
+    build_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    hits = _block(ji.intersect(scene, rays))
+    first_s = time.perf_counter() - t0
+    runs = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        hits = _block(ji.intersect(scene, rays))
+        runs.append(time.perf_counter() - t0)
+    o = np.asarray(rays.origin, np.float64)
+    ref = vm64(prog.ops, o[..., 0], o[..., 1], o[..., 2]) < 0
+    stats = {}
+    plan = ji.plan_for(scene, n * n)
+    if plan.tape and n <= 256:  # the per-level figures (one more call)
+        zr = ji.Rays(to_zorder(rays.origin, plan.tile), to_zorder(rays.direction, plan.tile))
+        scene.intersect_tape(zr, 0.0, np.inf, stats=stats)
+    return dict(size=n, instructions=len(prog), plan=repr(plan), build_s=build_s,
+                first_call_s=first_s, run_s=statistics.median(runs),
+                compile_s_est=max(first_s - statistics.median(runs), 0.0),
+                agreement=float(np.mean(np.asarray(hits.hit) == ref)),
+                inside_fraction=float(ref.mean()), registers=stats.get("registers"),
+                batches=stats.get("batches"), levels=stats.get("levels"),
+                peak_rss_mb=_rss_mb())
+
+
+def case_memory(n_prims, size, seed=1):
+    """Peak RSS of the default call on a generated CSG scene (perspective) against
+    program length and image size: ``ji.intersect(ji.ImplicitSurface(prog), cam.rays())``,
+    first call and one more."""
+    import jaxiso as ji
+    from jaxiso.implicit.generate import csg_program
+    prog = csg_program(n_prims, seed)
+    cam = ji.Camera.look_at((3.0, 2.2, 1.8), (0, 0, 0), fov=45.0, width=size, height=size)
+    scene = ji.ImplicitSurface(prog, (-1.4,) * 3, (1.4,) * 3)
+    t0 = time.perf_counter()
+    _block(ji.intersect(scene, cam.rays()))
+    first_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    _block(ji.intersect(scene, cam.rays()))
+    return dict(primitives=n_prims, instructions=len(prog), size=size,
+                plan=repr(ji.plan_for(scene, size * size)), first_call_s=first_s,
+                run_s=time.perf_counter() - t0, peak_rss_mb=_rss_mb())
+
+
 CASES = dict(straight=case_straight, tape=case_tape, prospero=case_prospero,
-             dense=case_dense, csg3d=case_csg3d, scene3d=case_scene3d)
+             dense=case_dense, csg3d=case_csg3d, scene3d=case_scene3d, slab=case_slab,
+             memory=case_memory)
 
 
 # ------------------------------------------------------------------------ the driver
@@ -331,6 +402,14 @@ def main():
         for n in ([512, 1024] if not a.quick else [128]):
             record("prospero", run_case("prospero", [n], a.timeout, a.mem_mb))
             record("prospero", run_case("dense", [n], a.timeout, a.mem_mb))
+    if "slab" in sections and PROSPERO.exists():
+        for n in ([256, 1024] if not a.quick else [64]):
+            record("slab", run_case("slab", [n], a.timeout, a.mem_mb))
+            record("slab", run_case("dense", [n], a.timeout, a.mem_mb))
+    if "memory" in sections:
+        for args in ([[50, 128], [200, 128], [800, 128], [200, 64], [200, 256]]
+                     if not a.quick else [[20, 32], [60, 32]]):
+            record("memory", run_case("memory", args, a.timeout, a.mem_mb))
     if "noprune" in sections and PROSPERO.exists():
         n = 512 if not a.quick else 128
         record("noprune", run_case("prospero", [n, False, 1], a.timeout, a.mem_mb))

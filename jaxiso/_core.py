@@ -220,11 +220,15 @@ class Plan:
         groups with per-region pruning (`ImplicitSurface` of a long program: its
         `preferred_plan` says when). Host-driven: under jit / vmap it runs in a
         `jax.pure_callback` (tested on CPU).
+      memory_budget: bytes the tape path's working set may take (its regions run in
+        batches sized from it; a program whose single region does not fit raises
+        MemoryError naming both figures). Default 1 GiB.
     """
 
     tile: int = 8
     lanes: int | None = None
     tape: bool = False
+    memory_budget: int = 2**30
 
     def __post_init__(self):
         if isinstance(self.tile, bool) or not isinstance(self.tile, (int, np.integer)) \
@@ -238,6 +242,11 @@ class Plan:
         if self.tape and self.lanes is not None:
             raise ValueError("Plan.tape runs its own breadth-first traversal: lanes must "
                              "be None")
+        if isinstance(self.memory_budget, bool) or not isinstance(
+                self.memory_budget, (int, np.integer)) or self.memory_budget < 2**20:
+            raise ValueError(f"Plan.memory_budget must be an int of at least 2**20 bytes, "
+                             f"got {self.memory_budget!r}")
+        object.__setattr__(self, "memory_budget", int(self.memory_budget))
         object.__setattr__(self, "tile", int(self.tile))
         object.__setattr__(self, "tape", bool(self.tape))
         if self.lanes is not None:
@@ -249,6 +258,8 @@ class Plan:
 
     def __repr__(self) -> str:
         tape = ", tape=True" if self.tape else ""
+        if self.memory_budget != 2**30:
+            tape += f", memory_budget={self.memory_budget}"
         return f"Plan(tile={self.tile}, lanes={self.lanes}{tape})"
 
 

@@ -189,3 +189,85 @@ def test_tape_dataclass_roundtrip():
     assert t.n_vars == 4 and int(t.n) == 4  # var x, var y, square, add
     t2 = dataclasses.replace(t, n=jnp.int32(4))
     assert float(P.evaluate_points(t2, 2.0, 1.0, 0.0)) == 5.0
+
+
+def _random_program(rng, size, n_vars=3):
+    """A random SSA program of about `size` operations (min/max-heavy, as CSG is) in which
+    every value is read: operations take their operands from a pool of up to 24 pending
+    values (a constant or coordinate read afresh when the pool runs low), and the pool is
+    folded by min at the end."""
+    ops, pool = [], []
+
+    def leaf():
+        if rng.uniform() < 0.5:
+            ops.append(("const", 0, 0, float(rng.uniform(-1, 1))))
+        else:
+            ops.append(("var", int(rng.integers(n_vars)), 0, 0.0))
+        return len(ops) - 1
+
+    unary = ["neg", "abs", "square"]
+    binary = ["add", "sub", "mul", "min", "max", "min", "max"]
+    while len(ops) < size:
+        while len(pool) < 2 or (len(pool) < 24 and rng.uniform() < 0.3):
+            pool.append(leaf())
+        x = pool.pop(int(rng.integers(len(pool))))
+        if rng.uniform() < 0.2:
+            ops.append((unary[rng.integers(len(unary))], x, 0, 0.0))
+        else:
+            y = pool.pop(int(rng.integers(len(pool))))
+            ops.append((binary[rng.integers(len(binary))], x, y, 0.0))
+        pool.append(len(ops) - 1)
+    while len(pool) > 1:
+        ops.append(("min", pool.pop(), pool.pop(), 0.0))
+        pool.append(len(ops) - 1)
+    return _tape._tidy(ops, len(ops) - 1, n_vars)
+
+
+def _ssa64(op, a, b, imm, n, x):
+    """Independent float64 interpreter of an SSA tape (one region, points x [3, P])."""
+    v = []
+    unary = {"neg": np.negative, "abs": np.abs, "square": np.square, "sqrt": np.sqrt}
+    binary = {"add": np.add, "sub": np.subtract, "mul": np.multiply, "div": np.divide,
+              "min": np.minimum, "max": np.maximum}
+    for i in range(n):
+        name = _tape.OPS[op[i]]
+        if name == "const":
+            v.append(np.full(x.shape[1], imm[i], np.float64))
+        elif name == "var":
+            v.append(x[a[i]].astype(np.float64))
+        elif name in unary:
+            v.append(unary[name](v[a[i]]))
+        else:
+            v.append(binary[name](v[a[i]], v[b[i]]))
+    return v[n - 1]
+
+
+@pytest.mark.parametrize("size", [300, 3000])
+def test_registers_stay_few_and_pruned_tapes_fit_their_file(size):
+    """The register file is sized by the values live at once, not by the program's length;
+    tapes pruned by any choices (random here) are allocated within it, and the evaluator
+    on those registers computes what an independent float64 SSA interpreter computes."""
+    rng = np.random.default_rng(size)
+    tape = _random_program(rng, size)
+    assert tape.registers <= 64 < int(tape.n)
+    R, Pn = 24, 5
+    batch = _tape.take_regions(tape, jnp.zeros(R, jnp.int32))
+    choice = jnp.asarray(rng.integers(0, 3, (tape.length, R)).astype(np.int8))
+    pruned = jax.jit(_tape.prune)(batch, choice)
+    _, used = jax.jit(_tape.allocate, static_argnums=4)(pruned.op, pruned.a, pruned.b,
+                                                        pruned.n, tape.registers)
+    assert np.all(np.asarray(used) <= tape.registers)
+    x = rng.uniform(-1, 1, (3, R, Pn)).astype(np.float32)
+    got = np.asarray(jax.jit(_tape.evaluate)(pruned, [jnp.asarray(c) for c in x]))
+    arrays = [np.asarray(v) for v in (pruned.op, pruned.a, pruned.b, pruned.imm, pruned.n)]
+    for r in range(R):
+        op, a, b, imm = (v[:, r] for v in arrays[:4])
+        ref = _ssa64(op, a, b, imm, arrays[4][r], x[:, r])
+        np.testing.assert_allclose(got[r], ref, rtol=1e-4, atol=1e-4 * (1 + np.abs(ref).max()))
+
+
+def test_register_count_is_flat_in_program_length():
+    counts = [P.tape_of(csg_program(k, seed=2)).registers for k in (10, 40, 160)]
+    lengths = [P.tape_of(csg_program(k, seed=2)).length for k in (10, 40, 160)]
+    assert lengths[-1] >= 8 * lengths[0]
+    assert max(counts) <= 32

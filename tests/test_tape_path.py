@@ -243,3 +243,24 @@ def test_affine_tape_evaluation_is_the_affine_extension_and_encloses_float64():
     xs = [jnp.asarray(pts[..., i].reshape(32, -1), jnp.float32) for i in range(3)]
     np.testing.assert_allclose(np.asarray(_tape.evaluate(pruned, xs)),
                                f64.reshape(32, -1), atol=1e-5)
+
+
+def test_a_small_memory_budget_runs_in_batches_with_the_same_hits():
+    """The tape path's regions run in batches sized from the budget: a budget a few
+    hundred times smaller splits the work into many batches and finds the same hits; a
+    budget too small for one region's tape raises MemoryError naming both figures."""
+    prog = csg_program(40, seed=7)
+    S = ji.ImplicitSurface(prog, (-1.3,) * 3, (1.3,) * 3, arithmetic="interval")
+    cam = ji.Camera.look_at((3.0, 2.5, 2.0), (0, 0, 0), width=32, height=32)
+    rays = cam.rays().reshape((-1,))
+    t_min, t_max = jnp.zeros(rays.shape), jnp.full(rays.shape, jnp.inf)
+    big, small = {}, {}
+    a = S.intersect_tape(rays, t_min, t_max, stats=big)
+    b = S.intersect_tape(rays, t_min, t_max, stats=small, budget=400_000)
+    assert small["batches"] > 2 * big["batches"]
+    np.testing.assert_array_equal(np.asarray(a.hit), np.asarray(b.hit))
+    np.testing.assert_array_equal(np.asarray(a.t), np.asarray(b.t))
+    with pytest.raises(MemoryError, match="memory budget"):
+        S.intersect_tape(rays, t_min, t_max, budget=20_000)
+    with pytest.raises(ValueError, match="memory_budget"):
+        ji.Plan(tape=True, memory_budget=1000)

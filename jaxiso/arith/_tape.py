@@ -19,6 +19,7 @@ no longer reachable from the output are dropped (the tape is compacted).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax
@@ -32,8 +33,9 @@ from . import _interval as ia
 from ._affine_type import Affine, _range
 from ._interval import Interval
 
-__all__ = ["OPS", "Tape", "assemble", "from_function", "evaluate", "prune", "bucket",
-           "take_regions", "resize", "with_opset"]
+__all__ = ["OPS", "Tape", "assemble", "from_function", "evaluate", "prune", "allocate",
+           "bucket", "take_regions", "resize", "with_opset", "with_registers", "map_program",
+           "register_bucket"]
 
 OPS = ("const", "var", "neg", "abs", "square", "sqrt", "exp", "log", "sin", "cos", "ipow",
        "add", "sub", "mul", "div", "min", "max")
@@ -66,6 +68,10 @@ class Tape:
       opset: static sorted tuple of the opcodes the tape may contain (the evaluator
         computes only these).
       n_vars: static number of coordinates the program reads (x, y, z[, w]).
+      reg: int32 [L, 3] ([L, 3, R]) registers of each instruction: where operand a and
+        operand b are read from and where the result is written (`allocate`).
+      registers: static size of the register file the evaluator holds (every tape
+        derived from this one by pruning needs at most as many, see `allocate`).
     """
 
     op: jax.Array
@@ -75,6 +81,8 @@ class Tape:
     n: jax.Array
     opset: tuple = static_field()
     n_vars: int = static_field()
+    reg: jax.Array | None = None
+    registers: int = static_field(0)
 
     @property
     def length(self) -> int:
@@ -108,9 +116,42 @@ def assemble(ops, n_vars: int, length: int | None = None) -> Tape:
         if code == VAR and not 0 <= ai < n_vars:
             raise ValueError(f"instruction {i} reads coordinate {ai} of {n_vars}")
     opset = tuple(sorted({CODE[o[0]] for o in ops} | {CONST}))
+    reg, used = _allocate_host(op[:n], a[:n], b[:n])
     return Tape(jnp.asarray(op), jnp.asarray(a), jnp.asarray(b), jnp.asarray(imm),
-                jnp.asarray(n, jnp.int32), opset, n_vars)
+                jnp.asarray(n, jnp.int32), opset, n_vars,
+                jnp.asarray(np.pad(reg, [(0, L - n), (0, 0)])), register_bucket(used))
 
+
+def register_bucket(used: int) -> int:
+    """The register-file size compiled for a program that needs `used` registers."""
+    return bucket(used, 4)
+
+
+def _allocate_host(op, a, b):
+    """Registers of an SSA program (numpy, one tape): the linear scan of `allocate`,
+    growing the file as needed. Returns (reg [n, 3], registers used)."""
+    n = len(op)
+    last = np.full(n, -1, np.int64)
+    for i in range(n):
+        if op[i] >= FIRST_UNARY:
+            last[a[i]] = i
+        if op[i] >= FIRST_BINARY:
+            last[b[i]] = i
+    reg = np.zeros((n, 3), np.int32)
+    free: list = []
+    used = 0
+    for i in range(n):
+        for k, x in ((0, a[i]), (1, b[i])):
+            if op[i] >= (FIRST_UNARY, FIRST_BINARY)[k]:
+                reg[i, k] = reg[x, 2]
+                if last[x] == i and not (k == 1 and b[i] == a[i]):
+                    free.append(reg[x, 2])
+        if free:
+            reg[i, 2] = free.pop()
+        else:
+            reg[i, 2] = used
+            used += 1
+    return reg, used
 
 # ------------------------------------------------------------- from plain JAX functions
 
@@ -210,12 +251,21 @@ def _tidy(ops, out: int, n_vars: int) -> Tape:
                 live[ops[i][1]] = True
             if code >= FIRST_BINARY:
                 live[ops[i][2]] = True
-    order = [i for i in range(out + 1) if live[i] and CODE[ops[i][0]] < FIRST_UNARY]
-    order += [i for i in range(out + 1) if live[i] and CODE[ops[i][0]] >= FIRST_UNARY]
-    # the result must be last; it is last among non-leaves, or the tape is a single leaf
-    if order[-1] != out:
-        order.remove(out)
-        order.append(out)
+    # leaves (const, var) just before their first use: a leaf defined early would hold a
+    # register until it is read (hoisted constants made CSG-40 need 512 registers, not 36)
+    order, placed = [], np.zeros(len(ops), bool)
+    for i in range(out + 1):
+        code = CODE[ops[i][0]]
+        if not live[i] or code < FIRST_UNARY:
+            continue
+        for k, first in ((1, FIRST_UNARY), (2, FIRST_BINARY)):
+            x = ops[i][k]
+            if code >= first and CODE[ops[x][0]] < FIRST_UNARY and not placed[x]:
+                order.append(x)
+                placed[x] = True
+        order.append(i)
+    if not order:  # the program is a single leaf
+        order = [out]
     new = {old: j for j, old in enumerate(order)}
     tidy = []
     for old in order:
@@ -328,9 +378,10 @@ def evaluate(tape: Tape, coords, record: bool = False):
         second, 0: both possible or not a min/max).
 
     Returns the program's value [R, P] (an array, an Interval or an Affine), and the
-    choices if `record`. Pure; jit it with the tape as an argument (its `opset`/`n_vars`
-    static). The register file holds every part of a value side by side (points 1,
-    intervals 2, affine forms with n symbols n + 2). Every step computes the rule of each
+    choices if `record`. Pure; jit it with the tape as an argument (its `opset`/`n_vars`/
+    `registers` static). The register file [registers, R, parts x P] holds every part of a
+    value side by side (points 1, intervals 2, affine forms with n symbols n + 2): its
+    size does not grow with the program's length. Every step computes the rule of each
     opcode in `opset` and selects; with affine rules that is 8-9x the interval cost on
     CPU (benchmarks/NOTES.md, Session 8), not (n + 2) / 2.
     """
@@ -342,15 +393,18 @@ def evaluate(tape: Tape, coords, record: bool = False):
     if record and kind not in (Interval, Affine):
         raise ValueError("record=True needs interval or affine coordinates")
     L, R = tape.op.shape
+    if tape.reg is None:
+        raise ValueError("the tape has no registers (`allocate`)")
+    K = tape.registers
     cstack = _coordinate_parts(coords, kind, R)
     shape = cstack[0].shape[1:]
     n_sym = coords[0].n if kind is Affine else 0
     rows = jnp.arange(R)
-    # one register file (XLA updates a single loop-carried buffer in place; with two it
-    # copied them every step): the value's parts side by side, the choices as the last
-    C = len(cstack) + int(record)
+    # one register file: the value's parts side by side
+    C = len(cstack)
     P = shape[-1]
-    regs = jnp.zeros((L, R, C * P), jnp.float32)
+    regs = jnp.zeros((K, R, C * P), jnp.float32)
+    choices = jnp.zeros((L, R, P), jnp.int8) if record else None
 
     def parts(v):
         return [v[:, c * P:(c + 1) * P] for c in range(C)]
@@ -376,23 +430,25 @@ def evaluate(tape: Tape, coords, record: bool = False):
 
     rule = _point_cases if kind not in (Interval, Affine) else _enclosure_cases
 
-    def body(i, regs):
-        o, a, b = tape.op[i], tape.a[i], tape.b[i]
+    def body(i, carry):
+        regs, choices = carry
+        o, a = tape.op[i], tape.a[i]
+        ra, rb, rd = (jnp.clip(tape.reg[i, k], 0, K - 1) for k in range(3))
+        rd = jnp.where(i < tape.n, rd, K)  # past a tape's end: written nowhere
         imm = tape.imm[i][:, None]
-        va = parts(regs[jnp.clip(a, 0, L - 1), rows])
-        vb = parts(regs[b, rows])
+        A, B = value(parts(regs[ra, rows])), value(parts(regs[rb, rows]))
         var = value([c[jnp.clip(a, 0, tape.n_vars - 1), rows] for c in cstack])
-        A, B = value(va), value(vb)
         out = flat(o, rule(tape.opset, A, B, imm, var))
+        regs = regs.at[rd, rows].set(jnp.concatenate(out, axis=-1), mode="drop")
         if record:
-            out.append(_choice(o, A, B).astype(jnp.float32))
-        return lax.dynamic_update_index_in_dim(regs, jnp.concatenate(out, axis=-1), i, 0)
+            choices = lax.dynamic_update_index_in_dim(choices, _choice(o, A, B), i, 0)
+        return regs, choices
 
-    regs = lax.fori_loop(0, jnp.max(tape.n), body, regs)
+    regs, choices = lax.fori_loop(0, jnp.max(tape.n), body, (regs, choices))
     last = jnp.clip(tape.n - 1, 0, L - 1)
-    result = value(parts(regs[last, rows]))
+    result = value(parts(regs[jnp.clip(tape.reg[last, 2, rows], 0, K - 1), rows]))
     if record:
-        return result, regs[:, :, (C - 1) * P:].astype(jnp.int8)
+        return result, choices
     return result
 
 
@@ -505,28 +561,99 @@ def prune(tape: Tape, choice) -> Tape:
 
     init = jnp.concatenate([jnp.full(F, CONST, jnp.int32), jnp.zeros(3 * F, jnp.int32)])
     dense = lax.fori_loop(0, top, scatter, init).reshape(4, L + 1, R)[:, :L]
+    reg, _ = allocate(dense[0], dense[1], dense[2], new_n, tape.registers)
     return Tape(dense[0], dense[1], dense[2], lax.bitcast_convert_type(dense[3], jnp.float32),
-                new_n, tape.opset, tape.n_vars)
+                new_n, tape.opset, tape.n_vars, reg, tape.registers)
+
+
+def allocate(op, a, b, n, registers: int):
+    """Registers of a batch of SSA tapes, a linear scan per region (as libfive and fidget
+    allocate): at each instruction the operands read for the last time free their
+    registers, then the result takes a free one, so the file holds only the values live
+    at once.
+
+    Args:
+      op, a, b: int32 [L, R] SSA tapes (operands index earlier instructions).
+      n: int32 [R] instructions in use.
+      registers: the file's size K (static). A tape pruned from a program needs at most
+        the registers the program needs: every value live across a kept instruction of the
+        pruned tape resolves from a value live across it in the program.
+
+    Returns (reg int32 [L, 3, R]: operand a's, operand b's and the result's register;
+    used int32 [R]: the most registers in use at once, > K only if K was too small, when
+    the registers are wrong)."""
+    L, R = op.shape
+    K = registers
+    rows = jnp.arange(R, dtype=jnp.int32)
+    i_col = jnp.arange(L, dtype=jnp.int32)[:, None]
+    act = i_col < n[None, :]
+    has_a = act & (op >= FIRST_UNARY)
+    has_b = act & (op >= FIRST_BINARY)
+    a = jnp.where(has_a, a, 0)
+    b = jnp.where(has_b, b, 0)
+    # each value's last reader (one scatter; the loop below only reads it)
+    last = jnp.full(L * R, -1, jnp.int32)
+    last = last.at[jnp.where(has_a, a * R + rows, L * R)].max(
+        jnp.broadcast_to(i_col, (L, R)), mode="drop")
+    last = last.at[jnp.where(has_b, b * R + rows, L * R)].max(
+        jnp.broadcast_to(i_col, (L, R)), mode="drop").reshape(L, R)
+    frees_a = has_a & (jnp.take_along_axis(last, a, 0) == i_col)
+    frees_b = has_b & (jnp.take_along_axis(last, b, 0) == i_col) & (b != a)
+    top = jnp.max(n)
+
+    def step(i, carry):
+        # buf: the registers of every instruction, [3 L R] (instruction major: step i
+        # writes its own row, reads earlier ones); the free stacks apart, [K R]
+        buf, stack, count, used = carry
+        ra = buf[(3 * a[i] + 2) * R + rows]
+        rb = buf[(3 * b[i] + 2) * R + rows]
+        for reg_, frees in ((ra, frees_a[i]), (rb, frees_b[i])):
+            stack = stack.at[jnp.where(frees, jnp.minimum(count, K - 1) * R + rows,
+                                       K * R)].set(reg_, mode="drop")
+            count = count + frees
+        take = act[i]
+        count = count - take
+        d = jnp.where(take, stack[jnp.clip(count, 0, K - 1) * R + rows], 0)
+        used = jnp.maximum(used, K - count)
+        row = jnp.stack([ra, rb, d]).reshape(-1)
+        return lax.dynamic_update_slice(buf, row, (3 * i * R,)), stack, count, used
+
+    stack0 = (K - 1 - jnp.arange(K, dtype=jnp.int32)[:, None]).repeat(R, 1).reshape(-1)
+    init = (jnp.zeros(3 * L * R, jnp.int32), stack0, jnp.full(R, K, jnp.int32),
+            jnp.zeros(R, jnp.int32))
+    buf, _, _, used = lax.fori_loop(0, top, step, init)
+    return buf.reshape(L, 3, R), used
+
+
+def map_program(tape: Tape, fn, n=None) -> Tape:
+    """The tape with `fn` applied to each per-instruction array (op, a, b, imm, reg;
+    instruction axis first, regions last) and n replaced by `n` (default: kept)."""
+    return Tape(fn(tape.op), fn(tape.a), fn(tape.b), fn(tape.imm),
+                tape.n if n is None else n, tape.opset, tape.n_vars, fn(tape.reg),
+                tape.registers)
 
 
 def with_opset(tape: Tape, opset) -> Tape:
     """The tape allowed to hold the opcodes of `opset` too (codes or names): tapes that
-    share an opset and a padded length share one compiled evaluator."""
+    share an opset, a padded length and a register count share one compiled evaluator."""
     codes = {CODE[o] if isinstance(o, str) else int(o) for o in opset}
-    return Tape(tape.op, tape.a, tape.b, tape.imm, tape.n,
-                tuple(sorted(set(tape.opset) | codes)), tape.n_vars)
+    return dataclasses.replace(tape, opset=tuple(sorted(set(tape.opset) | codes)))
+
+
+def with_registers(tape: Tape, registers: int) -> Tape:
+    """The tape evaluated with a register file of `registers` (at least its own)."""
+    if registers < tape.registers:
+        raise ValueError(f"the tape needs {tape.registers} registers, got {registers}")
+    return dataclasses.replace(tape, registers=int(registers))
 
 
 def take_regions(tape: Tape, index) -> Tape:
     """The tapes of a batch at `index` ([R'] ints; a single tape is broadcast)."""
     k = jnp.shape(index)[0]
     if tape.op.ndim == 1:
-        L = tape.length
-        return Tape(*(jnp.broadcast_to(x[:, None], (L, k)) for x in
-                      (tape.op, tape.a, tape.b, tape.imm)),
-                    jnp.broadcast_to(tape.n, (k,)), tape.opset, tape.n_vars)
-    return Tape(*(x[:, index] for x in (tape.op, tape.a, tape.b, tape.imm)),
-                tape.n[index], tape.opset, tape.n_vars)
+        return map_program(tape, lambda x: jnp.broadcast_to(x[..., None], x.shape + (k,)),
+                           jnp.broadcast_to(tape.n, (k,)))
+    return map_program(tape, lambda x: x[..., index], tape.n[index])
 
 
 def resize(tape: Tape, length: int) -> Tape:
@@ -536,8 +663,5 @@ def resize(tape: Tape, length: int) -> Tape:
     if length == L:
         return tape
     if length < L:
-        return Tape(*(x[:length] for x in (tape.op, tape.a, tape.b, tape.imm)), tape.n,
-                    tape.opset, tape.n_vars)
-    pad = [(0, length - L)] + [(0, 0)] * (tape.op.ndim - 1)
-    return Tape(*(jnp.pad(x, pad) for x in (tape.op, tape.a, tape.b, tape.imm)), tape.n,
-                tape.opset, tape.n_vars)
+        return map_program(tape, lambda x: x[:length])
+    return map_program(tape, lambda x: jnp.pad(x, [(0, length - L)] + [(0, 0)] * (x.ndim - 1)))

@@ -54,7 +54,7 @@ from ._grid import (
     segment_span,
     values_key,
 )
-from ._tape_rays import intersect_rays
+from ._tape_rays import DEFAULT_BUDGET, intersect_rays
 from .program import long_program_tape, tape_of
 
 __all__ = ["ImplicitSurface", "METHODS", "ARITHMETICS"]
@@ -300,7 +300,7 @@ class ImplicitSurface(_ImplicitOptions):
         return _plan(self.method, self.arithmetic, n_rays, backend, heavy)
 
     def intersect_tape(self, rays, t_min, t_max, stats: dict | None = None,
-                       prune: bool = True) -> Hits:
+                       prune: bool = True, budget: int = DEFAULT_BUDGET) -> Hits:
         """First hits of rays [N] on the tape path (`Plan.tape`). The traversal runs on
         the host with concrete values: eagerly (also under eager `jax.grad` / `jvp`, on
         the primal values), or under jit / vmap in a `jax.pure_callback`. Differentiated,
@@ -316,9 +316,10 @@ class ImplicitSurface(_ImplicitOptions):
         primal = jax.lax.stop_gradient((self, rays, t_min, t_max))
         leaves = jax.tree_util.tree_leaves((self, rays, t_min, t_max))
         if all(on_host(x) for x in leaves):
-            hits = intersect_rays(primal[0], tape, *primal[1:], stats=stats, prune=prune)
+            hits = intersect_rays(primal[0], tape, *primal[1:], stats=stats, prune=prune,
+                                  budget=budget)
         else:
-            hits = _tape_callback(tape, primal, stats, prune)
+            hits = _tape_callback(tape, primal, stats, prune, budget)
         if not any(isinstance(x, jax.core.Tracer) for x in leaves):
             return hits
         t, normal = _differentiable_hits(self.normals, (self, rays), hits)
@@ -525,7 +526,7 @@ def _k_bisection(test, p, D, d_max, inside, length, max_steps, verify):
     return jax.tree_util.tree_map(lambda a, b: jnp.where(coherent, a, b), res_k, res_t)
 
 
-def _tape_callback(tape, primal, stats, prune) -> Hits:
+def _tape_callback(tape, primal, stats, prune, budget) -> Hits:
     """`intersect_rays` on values that exist only at run time (under jit / vmap): the
     host driver runs in a `jax.pure_callback` on the concrete values (vmap: once per
     batch element)."""
@@ -540,7 +541,8 @@ def _tape_callback(tape, primal, stats, prune) -> Hits:
     def run(*values):
         scene, rays, t_min, t_max = jax.tree_util.tree_unflatten(
             tree, [jnp.asarray(v) for v in values])
-        hits = intersect_rays(scene, tape, rays, t_min, t_max, stats=stats, prune=prune)
+        hits = intersect_rays(scene, tape, rays, t_min, t_max, stats=stats, prune=prune,
+                              budget=budget)
         return jax.tree_util.tree_map(np.asarray, hits)
 
     return jax.pure_callback(run, out, *flat, vmap_method="sequential")

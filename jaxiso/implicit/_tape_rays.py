@@ -44,9 +44,10 @@ from ..arith._interval import Interval
 from ..arith._tape import Tape
 from ._bisect import depth_for, piece_width
 from ._field import CLOSER_PARTS, changes_sign, ray_boxes, ray_segments, touches
-from .program import _chunked_eval, _histogram, _survivors
+from .program import _chunked_eval, _histogram, ambiguous_positions, gather_children
 
-__all__ = ["intersect_rays", "ROOT_GROUP", "ROOT_SLABS"]
+__all__ = ["intersect_rays", "ROOT_GROUP", "ROOT_SLABS", "ROOT_GROUPS", "DEFAULT_BUDGET",
+           "batch_limit"]
 
 # The root is one region (all rays, the full tape); its children are groups of
 # ROOT_GROUP rays (a 16 x 16 tile in Z-order) x ROOT_SLABS slabs, as MPR's / cast's root
@@ -54,6 +55,11 @@ __all__ = ["intersect_rays", "ROOT_GROUP", "ROOT_SLABS"]
 # 256^2 kept 214 of 252 roots and pruned them only from 8,605 to ~7,000 instructions.
 ROOT_GROUP = 256
 ROOT_SLABS = 16
+# Roots are groups of at most ROOT_GROUPS x ROOT_GROUP rays (16,384), so that a root's
+# children stay a bounded batch however many rays there are.
+ROOT_GROUPS = 64
+# The default memory budget of the tape path's working set, bytes (`Plan.memory_budget`).
+DEFAULT_BUDGET = 2**30
 # Tapes padded to at most this many instructions are no longer pruned: on short tapes a
 # pruning pass costs more than the instructions it saves (CSG-60 at 96^2: 0.07 s per
 # level pruning ~20-instruction tapes padded to 128, more than their evaluation saved).
@@ -78,11 +84,13 @@ def _any_level(r: Interval, iso):
 
 
 @functools.partial(jax.jit, static_argnames=("G", "q", "h", "arithmetic"))
-def _level(tapes, reg, seg, lo, hi, rest, iso, G, q, h, arithmetic):
+def _level(tapes, reg, seg, lo, hi, rest, iso, first, G, q, h, arithmetic):
     """Split every region (R: groups of G rays) into q ray groups x h slabs, classify the
     children with the parents' tapes in `arithmetic` ("interval": their boxes; "affine":
     one noise symbol per axis of a group's box, a single ray's piece on one symbol, its
-    parameter); return children, which hold a level, their choices."""
+    parameter); return children, which hold a level, their choices, counts, and `first`
+    ([rays]: the end of each ray's nearest piece proven to hold a root, over every batch
+    so far) updated."""
     _, _, inside, p, D, fine = seg
     Gc = G // q
     sub, k = (a.reshape(-1) for a in jnp.meshgrid(jnp.arange(q), jnp.arange(h),
@@ -141,13 +149,12 @@ def _level(tapes, reg, seg, lo, hi, rest, iso, G, q, h, arithmetic):
         fb = _point_eval(tapes, pb[..., 0], pb[..., 1], pb[..., 2], rest)
         proven = amb & jnp.any((fa[..., None] - iso) * (fb[..., None] - iso) <= 0, axis=-1)
         n_rays = inside.shape[0]
-        first = jnp.full(n_rays, jnp.inf).at[jnp.where(proven, ray, n_rays)].min(
-            s1, mode="drop")
+        first = first.at[jnp.where(proven, ray, n_rays)].min(s1, mode="drop")
         amb = amb & (s0 < first[ray])
     unfinished = amb & ((s1 - s0) > fine[idx[..., 0]])
     children = dict(g=g, s0=s0, s1=s1)
     return children, amb, chosen, jnp.stack([jnp.sum(valid), jnp.sum(amb),
-                                              jnp.sum(unfinished)])
+                                              jnp.sum(unfinished)]), first
 
 
 @jax.jit
@@ -159,17 +166,15 @@ def _prune_sorted(tapes, choices):
     if c == 1:
         return _tape.prune(tapes, choices)
 
-    def split(x):
-        return jnp.moveaxis(x.reshape(L, c, R // c), 1, 0)
+    def split(x):  # [L, ..., R] -> [c, L, ..., R / c]
+        return jnp.moveaxis(x.reshape(x.shape[:-1] + (c, R // c)), -2, 0)
 
     def merge(x):
-        return jnp.moveaxis(x, 0, 1).reshape(L, R)
+        return jnp.moveaxis(x, 0, -2).reshape(x.shape[1:-1] + (R,))
 
-    parts = Tape(split(tapes.op), split(tapes.a), split(tapes.b), split(tapes.imm),
-                 tapes.n.reshape(c, R // c), tapes.opset, tapes.n_vars)
+    parts = _tape.map_program(tapes, split, tapes.n.reshape(c, R // c))
     out = jax.lax.map(lambda args: _tape.prune(*args), (parts, split(choices)))
-    return Tape(merge(out.op), merge(out.a), merge(out.b), merge(out.imm),
-                out.n.reshape(R), tapes.opset, tapes.n_vars)
+    return _tape.map_program(out, merge, out.n.reshape(R))
 
 
 @jax.jit
@@ -288,28 +293,87 @@ def _finish(rays, seg, best, value, gradient, iso, levels):
                 steps=jnp.where(inside, levels, 0).astype(jnp.int32))
 
 
-def _schedule(n_groups: int, group: int):
-    """(q, h) per level: the root's groups x slabs, ray groups down to single rays, then
-    quarters."""
-    yield n_groups, ROOT_SLABS
-    while group > 1:
-        yield 4, 2
+def _split(level: int, root_q: int, group: int):
+    """(q, h) of a level: the roots' groups x slabs, ray groups down to single rays, then
+    quarters of the pieces."""
+    if level == 0:
+        return root_q, ROOT_SLABS
+    while group > 1 and level > 1:
         group //= 4
-    while True:
-        yield 1, 4
+        level -= 1
+    return (4, 2) if group > 1 else (1, 4)
+
+
+# Bytes per tape instruction of a batch: a parent's child while it is classified (its
+# choice, int8, and the evaluator's share), and a surviving child (its tape: op, a, b,
+# imm and three registers, 28 bytes; the pruning pass's buffers, about 40).
+BYTES_PER_CHILD_INSTRUCTION = 4
+BYTES_PER_SURVIVOR_INSTRUCTION = 72
+
+
+def _pow2_floor(x: float) -> int:
+    return 0 if x < 1 else 1 << (int(x).bit_length() - 1)
+
+
+def batch_limit(length: int, children: int, budget: int) -> int:
+    """How many parent regions of tapes `length` long, with `children` children each, one
+    level may classify at once within `budget` bytes (a power of two; 0: not one)."""
+    return _pow2_floor(budget / (BYTES_PER_CHILD_INSTRUCTION * length * children))
+
+
+def survivor_limit(length: int, budget: int) -> int:
+    """How many surviving children with tapes `length` long may be gathered and pruned at
+    once within `budget` bytes (a power of two; 0: not one)."""
+    return _pow2_floor(budget / (BYTES_PER_SURVIVOR_INSTRUCTION * length))
+
+
+def _too_big(what: str, need: float, level: int, length: int, budget: int):
+    return MemoryError(
+        f"the tape path needs {need / 2**20:.0f} MB for {what} at level {level} (tapes of "
+        f"{length} instructions), over the memory budget of {budget / 2**20:.0f} MB "
+        f"(Plan.memory_budget)")
+
+
+@functools.partial(jax.jit, static_argnames=("size",))
+def _take(tapes, reg, start, count, size):
+    """Regions start .. start + size - 1 of a batch (those past `count` invalid)."""
+    idx = jnp.minimum(start + jnp.arange(size), tapes.op.shape[1] - 1)
+    ok = (start + jnp.arange(size)) < count
+    sub = {k: v[idx] for k, v in reg.items()}
+    sub["valid"] = sub["valid"] & ok
+    return _tape.take_regions(tapes, idx), sub
+
+
+@functools.partial(jax.jit, static_argnames=("n_rays",))
+def _merge(best, value, gradient, found, n_rays):
+    """Each ray's nearest hit over the batches so far."""
+    b, v, g = found
+    win = b < best
+    return (jnp.where(win, b, best), jnp.where(win, v, value),
+            jnp.where(win[:, None], g, gradient))
 
 
 def intersect_rays(scene, tape: Tape, rays: Rays, t_min, t_max, stats: dict | None = None,
-                   prune: bool = True) -> Hits:
+                   prune: bool = True, budget: int = DEFAULT_BUDGET) -> Hits:
     """First hits of rays [N] (concrete arrays) on the level sets of `scene` (an
-    `ImplicitSurface` whose field is `tape`). `stats`, when given, receives per-level
-    region counts and tape lengths (mean, max, histogram). `prune=False` runs every
-    region on the full tape (to measure what pruning buys)."""
+    `ImplicitSurface` whose field is `tape`).
+
+    Regions run in batches that fit `budget` bytes (a batch's children, their tapes and
+    the pruning pass; the evaluator's register file is sized from it too), depth first:
+    a batch's children are done before its siblings, so memory stays near one batch per
+    level, whatever the image size. `stats`, when given, receives per-level region counts
+    and tape lengths (mean, max, histogram), the register file and the batches run.
+    `prune=False` runs every region on the full tape (to measure what pruning buys).
+    Raises MemoryError when one region's children do not fit the budget."""
     n = rays.shape[0]
     group = ROOT_GROUP
     while group > 1 and group // 4 >= n:
         group //= 4
-    n_pad = -(-n // group) * group
+    # roots of fewer groups for long tapes, so that one root's children fit the budget
+    root_q = min(ROOT_GROUPS, _tape.bucket(-(-n // group), 1),
+                 max(1, batch_limit(tape.length, ROOT_SLABS, budget)))
+    per_root = root_q * group
+    n_pad = -(-n // per_root) * per_root
     pad = n_pad - n
     o = jnp.concatenate([rays.origin, jnp.broadcast_to(rays.origin[:1], (pad, 3))])
     d = jnp.concatenate([rays.direction, jnp.broadcast_to(rays.direction[:1], (pad, 3))])
@@ -323,34 +387,76 @@ def intersect_rays(scene, tape: Tape, rays: Rays, t_min, t_max, stats: dict | No
     if len(rest) != tape.n_vars - 3:
         raise ValueError(f"the tape reads {tape.n_vars} coordinates, the scene gives "
                          f"{3 + len(rest)}")
-    reg = dict(g=jnp.zeros(1, jnp.int32), s0=jnp.zeros(1), s1=jnp.ones(1),
-               valid=jnp.ones(1, bool))
-    tapes = _tape.take_regions(tape, jnp.zeros(1, jnp.int32))
-    G = n_pad
-    levels = []
-    for q, h in _schedule(n_pad // group, group):
-        children, amb, chosen, counts = _level(tapes, reg, seg, scene.lo, scene.hi, rest,
-                                               iso, G, q, h, scene.arithmetic)
+    n_roots = n_pad // per_root
+    roots = dict(g=jnp.arange(n_roots, dtype=jnp.int32), s0=jnp.zeros(n_roots),
+                 s1=jnp.ones(n_roots), valid=jnp.ones(n_roots, bool))
+    # the work: (tapes, regions, how many are real, level, rays per region), last first
+    work = [(_tape.take_regions(tape, jnp.zeros(n_roots, jnp.int32)), roots, n_roots, 0,
+             per_root)]
+    first = jnp.full(n_pad, jnp.inf, jnp.float32)
+    best = jnp.full(n_pad, jnp.inf, jnp.float32)
+    value = jnp.zeros(n_pad, jnp.float32)
+    gradient = jnp.zeros((n_pad, 3), jnp.float32)
+    per_level: dict = {}
+    batches = depth = 0
+    while work:
+        tapes, reg, count, level, G = work.pop()
+        q, h = _split(level, root_q, group)
+        limit = batch_limit(tapes.length, q * h, budget)
+        if limit == 0:
+            raise _too_big(f"one region's {q * h} children", BYTES_PER_CHILD_INSTRUCTION *
+                           tapes.length * q * h, level, tapes.length, budget)
+        if count > limit:  # too many regions at once: split the batch, first part first
+            parts = [_take(tapes, reg, k, count, limit) + (min(limit, count - k),)
+                     for k in range(0, count, limit)]
+            work.extend((t, r, c, level, G) for t, r, c in reversed(parts))
+            continue
+        batches += 1
+        depth = max(depth, level + 1)
+        children, amb, chosen, counts, first = _level(
+            tapes, reg, seg, scene.lo, scene.hi, rest, iso, first, G, q, h,
+            scene.arithmetic)
         n_valid, n_amb, n_unfinished = (int(c) for c in counts)
-        G //= q
-        size = _tape.bucket(max(n_amb, 1), 8, fine=True)
-        tapes, choices, reg = _survivors(tapes, children, amb, chosen, size)
-        if prune and tapes.length > PRUNE_ABOVE:
-            tapes = _prune_sorted(tapes, choices)
-            tapes = _tape.resize(tapes, _tape.bucket(int(jnp.max(tapes.n))))
-        tapes, reg = _longest_first(tapes, reg)
         if stats is not None:
-            kept = np.asarray(tapes.n)[:n_amb]
-            levels.append(dict(rays_per_region=G, regions=n_valid, kept=n_amb,
-                               tape_mean=float(kept.mean()) if n_amb else 0.0,
-                               tape_max=int(kept.max()) if n_amb else 0,
-                               tape_hist=_histogram(kept)))
-        else:
-            levels.append(None)
-        if n_amb == 0 or (G == 1 and n_unfinished == 0):
-            break
+            row = per_level.setdefault(level, dict(rays_per_region=G // q, regions=0,
+                                                   kept=0, lengths=[]))
+            row["regions"] += n_valid
+            row["kept"] += n_amb
+        if n_amb == 0:
+            continue
+        # the survivors, in parts that can be gathered and pruned within the budget
+        part = survivor_limit(tapes.length, budget)
+        if part == 0:
+            raise _too_big("one region's tape", BYTES_PER_SURVIVOR_INSTRUCTION *
+                           tapes.length, level, tapes.length, budget)
+        size = min(part, _tape.bucket(n_amb, 8, fine=True))
+        where = ambiguous_positions(amb, _tape.bucket(n_amb, 8, fine=True))
+        pieces = []
+        for start in range(0, n_amb, size):
+            sub, choices, sub_reg = gather_children(tapes, children, chosen, where,
+                                                     start, n_amb, size)
+            if prune and sub.length > PRUNE_ABOVE:
+                sub = _prune_sorted(sub, choices)
+                sub = _tape.resize(sub, _tape.bucket(int(jnp.max(sub.n))))
+            sub, sub_reg = _longest_first(sub, sub_reg)
+            pieces.append((sub, sub_reg, min(size, n_amb - start)))
+            if stats is not None:
+                row["lengths"].append(np.asarray(sub.n)[:pieces[-1][2]])
+        for sub, sub_reg, c in reversed(pieces):
+            if G // q == 1 and n_unfinished == 0:
+                found = _final(sub, sub_reg, seg, rest, iso, scene.verify, n_pad)
+                best, value, gradient = _merge(best, value, gradient, found, n_pad)
+            else:
+                work.append((sub, sub_reg, c, level + 1, G // q))
     if stats is not None:
-        stats.update(tape_length=int(tape.n), levels=levels)
-    best, value, gradient = _final(tapes, reg, seg, rest, iso, scene.verify, n_pad)
-    hits = _finish(Rays(o, d), seg, best, value, gradient, iso, jnp.int32(len(levels)))
+        stats.update(tape_length=int(tape.n), registers=tape.registers, batches=batches,
+                     budget=budget, levels=[_level_stats(per_level[k])
+                                            for k in sorted(per_level)])
+    hits = _finish(Rays(o, d), seg, best, value, gradient, iso, jnp.int32(depth))
     return jax.tree_util.tree_map(lambda a: a[:n], hits)
+
+
+def _level_stats(row):
+    kept = np.concatenate(row.pop("lengths"))
+    return dict(row, tape_mean=float(kept.mean()) if kept.size else 0.0,
+                tape_max=int(kept.max()) if kept.size else 0, tape_hist=_histogram(kept))

@@ -301,15 +301,19 @@ def _lead(c):
 
 
 def _chunked_eval(tapes, coords, record, budget, min_chunks=1):
-    """`_tape.evaluate` over region chunks so that the register file stays within
-    `budget` elements (R is a power of two), in at least `min_chunks` chunks (each runs
-    as many instructions as its longest tape: regions sorted by tape length gain)."""
+    """`_tape.evaluate` over region chunks so that its working set (the register file,
+    and the choices of `record`) stays within `budget` elements (R is a power of two), in
+    at least `min_chunks` chunks (each runs as many instructions as its longest tape:
+    regions sorted by tape length gain)."""
     L, R = tapes.op.shape
     P = jnp.broadcast_shapes(*[jnp.shape(_lead(c)) for c in coords])[-1]
-    # an affine register holds n + 2 parts, an interval one 2: affine chunks are smaller
-    P *= max(1, (coords[0].n + 2) // 2) if isinstance(coords[0], Affine) else 1
+    # an affine register holds n + 2 parts, an interval one 2, a point 1
+    parts = (coords[0].n + 2 if isinstance(coords[0], Affine)
+             else 2 if isinstance(coords[0], Interval) else 1)
+    per_region = tapes.registers * P * parts + (L * P // 4 if record else 0)
     chunks = 1
-    while R % (2 * chunks) == 0 and (L * (R // chunks) * P > budget or chunks < min_chunks):
+    while R % (2 * chunks) == 0 and (per_region * (R // chunks) > budget or
+                                     chunks < min_chunks):
         chunks *= 2
     if chunks == 1:
         return _tape.evaluate(tapes, coords, record)
@@ -319,11 +323,10 @@ def _chunked_eval(tapes, coords, record, budget, min_chunks=1):
         x = jnp.broadcast_to(x, (R,) + jnp.shape(x)[1:])
         return x.reshape((chunks, R // chunks) + x.shape[1:])
 
-    def split_prog(x):  # [L, R] -> [chunks, L, R / chunks]
-        return jnp.moveaxis(x.reshape(L, chunks, R // chunks), 1, 0)
+    def split_prog(x):  # [L, ..., R] -> [chunks, L, ..., R / chunks]
+        return jnp.moveaxis(x.reshape(x.shape[:-1] + (chunks, R // chunks)), -2, 0)
 
-    ct = Tape(*(split_prog(x) for x in (tapes.op, tapes.a, tapes.b, tapes.imm)),
-              tapes.n.reshape(chunks, R // chunks), tapes.opset, tapes.n_vars)
+    ct = _tape.map_program(tapes, split_prog, tapes.n.reshape(chunks, R // chunks))
     cc = jax.tree_util.tree_map(split_coord, coords)
 
     def one(args):
@@ -373,19 +376,25 @@ def _level(tapes, reg, smap, front, frame, lo, hi, w, gy, gx, h, Tc, H, W, ortho
 
 
 @functools.partial(jax.jit, static_argnames=("size",))
-def _survivors(tapes, children, amb, chosen, size):
-    """The ambiguous children (first `size`): regions, their parents' tapes and their own
-    min/max choices."""
-    R, P = amb.shape
-    flat = amb.reshape(-1)
-    idx = jnp.nonzero(flat, size=size, fill_value=0)[0]
-    ok = jnp.arange(size) < jnp.sum(flat)
-    r, p = idx // P, idx % P
-    reg = {k: v.reshape(-1)[idx] for k, v in children.items()}
+def ambiguous_positions(amb, size):
+    """Flat positions of the ambiguous children of amb [R, C] (the first `size`)."""
+    return jnp.nonzero(amb.reshape(-1), size=size, fill_value=0)[0].astype(jnp.int32)
+
+
+@functools.partial(jax.jit, static_argnames=("size",))
+def gather_children(tapes, children, chosen, where, start, count, size):
+    """Children where[start:start + size] (those past `count` invalid): their regions,
+    their parents' tapes and their own min/max choices ([L, size])."""
+    C = chosen.shape[2]
+    k = start + jnp.arange(size)
+    idx = where[jnp.minimum(k, where.shape[0] - 1)]
+    ok = k < count
+    r, c = idx // C, idx % C
+    reg = {key: v.reshape(-1)[idx] for key, v in children.items()}
     reg["valid"] = ok
     parent = _tape.take_regions(tapes, r)
     parent = dataclasses.replace(parent, n=jnp.where(ok, parent.n, 1))
-    return parent, chosen[:, r, p], reg
+    return parent, chosen[:, r, c], reg
 
 
 # A separate call: fused with the gathers above, XLA laid the tapes out so that the
@@ -535,7 +544,8 @@ def cast(f, lo, hi, camera, w=0.0, schedule: Schedule | None = None, prune: bool
         n_valid, n_full, n_amb = (int(c) for c in np.asarray(counts))
         t_eval = time.perf_counter() - t_level
         size = _tape.bucket(max(n_amb, 1), 8, fine=True)
-        tapes, choices, reg = _survivors(tapes, children, amb, chosen, size)
+        tapes, choices, reg = gather_children(tapes, children, chosen,
+                                              ambiguous_positions(amb, size), 0, n_amb, size)
         if prune:
             tapes = _prune(tapes, choices)
             tapes = _tape.resize(tapes, _tape.bucket(int(jnp.max(tapes.n))))

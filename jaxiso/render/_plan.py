@@ -71,17 +71,17 @@ def intersect(scene, rays: Rays, *, t_min=0.0, t_max=jnp.inf, plan: Plan | None 
     return _intersect(scene, rays, t_min, t_max, plan)
 
 
-def _tape_hits(scene, rays, t_min, t_max, tile):
+def _tape_hits(scene, rays, t_min, t_max, tile, budget):
     """The tape path on rays of any shape; an image-shaped batch [H, W] runs in Z-order
     within tile x tile tiles, so that its ray groups are squares of pixels."""
     shape = rays.shape
     if len(shape) != 2:
         n = math.prod(shape)
         return scene.intersect_tape(rays.reshape((n,)), t_min.reshape(n),
-                                    t_max.reshape(n)).reshape(shape)
+                                    t_max.reshape(n), budget=budget).reshape(shape)
     hits = scene.intersect_tape(
         Rays(to_zorder(rays.origin, tile), to_zorder(rays.direction, tile)),
-        to_zorder(t_min, tile), to_zorder(t_max, tile))
+        to_zorder(t_min, tile), to_zorder(t_max, tile), budget=budget)
     return jax.tree_util.tree_map(lambda x: from_zorder(x, tile, *shape), hits)
 
 
@@ -120,7 +120,7 @@ def intersect_traced(scene, rays: Rays, t_min, t_max, plan: Plan) -> Hits:
     n = math.prod(shape)
     if plan.tape:
         return _tape_hits(scene, rays, jnp.broadcast_to(t_min, shape),
-                          jnp.broadcast_to(t_max, shape), plan.tile)
+                          jnp.broadcast_to(t_max, shape), plan.tile, plan.memory_budget)
     packet = n if plan.lanes else max(1, min(plan.packet, n))
     n_packets = -(-n // packet)
     pad = n_packets * packet - n
