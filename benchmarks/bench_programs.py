@@ -404,7 +404,7 @@ def main():
             record("prospero", run_case("dense", [n], a.timeout, a.mem_mb))
     if "slab" in sections and PROSPERO.exists():
         for n in ([256, 1024] if not a.quick else [64]):
-            record("slab", run_case("slab", [n], a.timeout, a.mem_mb))
+            record("slab", run_case("slab", [n, 2 if n <= 256 else 1], a.timeout, a.mem_mb))
             record("slab", run_case("dense", [n], a.timeout, a.mem_mb))
     if "memory" in sections:
         for args in ([[50, 128], [200, 128], [800, 128], [200, 64], [200, 256]]
@@ -424,17 +424,56 @@ def main():
     chart(results, pathlib.Path(a.out).with_suffix(""))
 
 
-def chart(results, stem):
-    """Compile time against program length (the crossover section) as a PNG, when
-    matplotlib (the bench extra) is installed."""
-    rows = results["sections"].get("crossover", [])
-    if not rows:
-        return
+def _pyplot():
     try:
         import matplotlib
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
-    except ImportError:
+    except ImportError:  # the bench extra is not installed
+        return None
+    return plt
+
+
+def chart_memory(results, stem):
+    """Peak RSS of the default call against program length and image size (the memory
+    and slab sections) as <stem>_memory.png."""
+    rows = [r for r in results["sections"].get("memory", []) if "peak_rss_mb" in r]
+    plt = _pyplot()
+    if not rows or plt is None:
+        return
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+    by_len = sorted((r["instructions"], r["peak_rss_mb"] / 1024) for r in rows
+                    if r["size"] == 128)
+    by_size = sorted((r["size"] ** 2, r["peak_rss_mb"] / 1024) for r in rows
+                     if r["primitives"] == 200)
+    axes[0].plot(*zip(*by_len), marker="o", label="generated CSG, 128^2")
+    axes[0].set_xscale("log")
+    axes[0].set_xlabel("program length (instructions)")
+    axes[1].plot(*zip(*by_size), marker="o", label="CSG of 200 primitives")
+    slab = sorted((r["size"] ** 2, r["peak_rss_mb"] / 1024) for r in
+                  results["sections"].get("slab", []) if r.get("case") == "slab"
+                  and "peak_rss_mb" in r)
+    if slab:
+        axes[1].plot(*zip(*slab), marker="s", label="Prospero slab (7,866)")
+    axes[1].set_xscale("log")
+    axes[1].set_xlabel("rays")
+    for ax in axes:
+        ax.set_ylabel("peak RSS (GB)")
+        ax.set_ylim(0, None)
+        ax.legend(fontsize=7)
+    fig.suptitle("Default call, tape path, memory budget 1 GiB (2-core CPU)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(f"{stem}_memory.png", dpi=110)
+    plt.close(fig)
+
+
+def chart(results, stem):
+    """Compile time against program length (the crossover section) as a PNG, when
+    matplotlib (the bench extra) is installed; and `chart_memory`."""
+    chart_memory(results, stem)
+    rows = results["sections"].get("crossover", [])
+    plt = _pyplot()
+    if not rows or plt is None:
         return
     fig, ax = plt.subplots(figsize=(5.5, 3.6))
     for case, label in (("straight", "straight (XLA inlines the interval extension)"),

@@ -627,10 +627,11 @@ def allocate(op, a, b, n, registers: int):
 
 def map_program(tape: Tape, fn, n=None) -> Tape:
     """The tape with `fn` applied to each per-instruction array (op, a, b, imm, reg;
-    instruction axis first, regions last) and n replaced by `n` (default: kept)."""
+    instruction axis first, regions last) and n replaced by `n` (default: kept). A tape
+    without registers (`reg` None: one about to be pruned) stays without."""
     return Tape(fn(tape.op), fn(tape.a), fn(tape.b), fn(tape.imm),
-                tape.n if n is None else n, tape.opset, tape.n_vars, fn(tape.reg),
-                tape.registers)
+                tape.n if n is None else n, tape.opset, tape.n_vars,
+                None if tape.reg is None else fn(tape.reg), tape.registers)
 
 
 def with_opset(tape: Tape, opset) -> Tape:

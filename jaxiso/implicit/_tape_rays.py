@@ -432,10 +432,11 @@ def intersect_rays(scene, tape: Tape, rays: Rays, t_min, t_max, stats: dict | No
         size = min(part, _tape.bucket(n_amb, 8, fine=True))
         where = ambiguous_positions(amb, _tape.bucket(n_amb, 8, fine=True))
         pieces = []
+        pruning = prune and tapes.length > PRUNE_ABOVE
         for start in range(0, n_amb, size):
             sub, choices, sub_reg = gather_children(tapes, children, chosen, where,
-                                                     start, n_amb, size)
-            if prune and sub.length > PRUNE_ABOVE:
+                                                     start, n_amb, size, not pruning)
+            if pruning:
                 sub = _prune_sorted(sub, choices)
                 sub = _tape.resize(sub, _tape.bucket(int(jnp.max(sub.n))))
             sub, sub_reg = _longest_first(sub, sub_reg)

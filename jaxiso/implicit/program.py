@@ -381,10 +381,14 @@ def ambiguous_positions(amb, size):
     return jnp.nonzero(amb.reshape(-1), size=size, fill_value=0)[0].astype(jnp.int32)
 
 
-@functools.partial(jax.jit, static_argnames=("size",))
-def gather_children(tapes, children, chosen, where, start, count, size):
+@functools.partial(jax.jit, static_argnames=("size", "registers"))
+def gather_children(tapes, children, chosen, where, start, count, size, registers=True):
     """Children where[start:start + size] (those past `count` invalid): their regions,
-    their parents' tapes and their own min/max choices ([L, size])."""
+    their parents' tapes and their own min/max choices ([L, size]). `registers=False`
+    leaves the tapes' registers behind (for tapes about to be pruned, which allocates
+    them anew: 3 of the 7 arrays a gather would move)."""
+    if not registers:
+        tapes = dataclasses.replace(tapes, reg=None)
     C = chosen.shape[2]
     k = start + jnp.arange(size)
     idx = where[jnp.minimum(k, where.shape[0] - 1)]
@@ -545,7 +549,8 @@ def cast(f, lo, hi, camera, w=0.0, schedule: Schedule | None = None, prune: bool
         t_eval = time.perf_counter() - t_level
         size = _tape.bucket(max(n_amb, 1), 8, fine=True)
         tapes, choices, reg = gather_children(tapes, children, chosen,
-                                              ambiguous_positions(amb, size), 0, n_amb, size)
+                                              ambiguous_positions(amb, size), 0, n_amb, size,
+                                              not prune)
         if prune:
             tapes = _prune(tapes, choices)
             tapes = _tape.resize(tapes, _tape.bucket(int(jnp.max(tapes.n))))
