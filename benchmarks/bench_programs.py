@@ -408,7 +408,7 @@ def main():
             record("slab", run_case("dense", [n], a.timeout, a.mem_mb))
     if "memory" in sections:
         for args in ([[50, 128], [200, 128], [800, 128], [200, 64], [200, 256]]
-                     if not a.quick else [[20, 32], [60, 32]]):
+                     if not a.quick else [[60, 32], [120, 32]]):  # tape-path sizes
             record("memory", run_case("memory", args, a.timeout, a.mem_mb))
     if "noprune" in sections and PROSPERO.exists():
         n = 512 if not a.quick else 128
@@ -446,10 +446,12 @@ def chart_memory(results, stem):
                     if r["size"] == 128)
     by_size = sorted((r["size"] ** 2, r["peak_rss_mb"] / 1024) for r in rows
                      if r["primitives"] == 200)
-    axes[0].plot(*zip(*by_len), marker="o", label="generated CSG, 128^2")
+    if by_len:
+        axes[0].plot(*zip(*by_len), marker="o", label="generated CSG, 128^2")
     axes[0].set_xscale("log")
     axes[0].set_xlabel("program length (instructions)")
-    axes[1].plot(*zip(*by_size), marker="o", label="CSG of 200 primitives")
+    if by_size:
+        axes[1].plot(*zip(*by_size), marker="o", label="CSG of 200 primitives")
     slab = sorted((r["size"] ** 2, r["peak_rss_mb"] / 1024) for r in
                   results["sections"].get("slab", []) if r.get("case") == "slab"
                   and "peak_rss_mb" in r)
@@ -460,7 +462,8 @@ def chart_memory(results, stem):
     for ax in axes:
         ax.set_ylabel("peak RSS (GB)")
         ax.set_ylim(0, None)
-        ax.legend(fontsize=7)
+        if ax.lines:
+            ax.legend(fontsize=7)
     fig.suptitle("Default call, tape path, memory budget 1 GiB (2-core CPU)", fontsize=9)
     fig.tight_layout()
     fig.savefig(f"{stem}_memory.png", dpi=110)
