@@ -561,7 +561,16 @@ def prune(tape: Tape, choice) -> Tape:
 
     init = jnp.concatenate([jnp.full(F, CONST, jnp.int32), jnp.zeros(3 * F, jnp.int32)])
     dense = lax.fori_loop(0, top, scatter, init).reshape(4, L + 1, R)[:, :L]
-    reg, _ = allocate(dense[0], dense[1], dense[2], new_n, tape.registers)
+    K = tape.registers
+
+    def in_order(_):  # every instruction its own register: valid when all fit the file
+        return jnp.stack([dense[1], dense[2], jnp.broadcast_to(
+            jnp.arange(L, dtype=jnp.int32)[:, None], (L, R))], axis=1)
+
+    # the scan only where some pruned tape is longer than the file (on the 2D path most
+    # are short, and the scan cost more than it saved)
+    reg = lax.cond(jnp.max(new_n) <= K, in_order,
+                   lambda _: allocate(dense[0], dense[1], dense[2], new_n, K)[0], None)
     return Tape(dense[0], dense[1], dense[2], lax.bitcast_convert_type(dense[3], jnp.float32),
                 new_n, tape.opset, tape.n_vars, reg, tape.registers)
 
