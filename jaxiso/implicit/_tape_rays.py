@@ -359,7 +359,8 @@ def intersect_rays(scene, tape: Tape, rays: Rays, t_min, t_max, stats: dict | No
     `ImplicitSurface` whose field is `tape`).
 
     Regions run in batches that fit `budget` bytes (a batch's children, their tapes and
-    the pruning pass; the evaluator's register file is sized from it too), depth first:
+    the pruning pass; the evaluator's chunks keep their own cap, `_BUDGET` elements of
+    its register file), depth first:
     a batch's children are done before its siblings, so memory stays near one batch per
     level, whatever the image size. `stats`, when given, receives per-level region counts
     and tape lengths (mean, max, histogram), the register file and the batches run.
