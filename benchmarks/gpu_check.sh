@@ -4,6 +4,7 @@
 # cases, and the quick configuration of each scene kind's benchmark (implicit, volume,
 # tetra). Every stage runs under `timeout` and reports its wall time; a failing stage is
 # recorded and the next one runs. Results go to "${OUT:-gpu_results}":
+#   failed_tests.txt  the tests that failed (or errored), named as they finished
 #   summary.json      each stage's command, exit status, wall seconds, timeout, log tail;
 #                     versions; the optional test tools found or missing
 #   stages.log        every stage's full output, one after the other
@@ -17,7 +18,7 @@
 #   OUT                  result folder (default gpu_results)
 #   PYTHON               interpreter (default python3, else python)
 #   GPU_CHECK_TESTS      test paths / node ids (default: the whole tests/ folder)
-#   GPU_CHECK_WORKERS    pytest-xdist workers (default 4; 0: no xdist)
+#   GPU_CHECK_WORKERS    pytest-xdist workers (default: half the cores, at most 12; 0: no xdist)
 #   GPU_CHECK_INSTALL    1: pip install --no-index --no-deps --no-build-isolation -e .
 #                        (jax and the rest stay as they are); 0: skip. Default: 1 where
 #                        nvidia-smi is found, else 0 (on a shared CPU box the script must
@@ -50,7 +51,9 @@ if [ -z "${PYTHON:-}" ]; then
     if command -v python3 >/dev/null 2>&1; then PYTHON=python3; else PYTHON=python; fi
 fi
 BUDGET_S="${GPU_CHECK_BUDGET_S:-450}"
-WORKERS="${GPU_CHECK_WORKERS:-4}"
+# one worker per two cores, at most 12 (the GPU is shared by the workers)
+NPROC=$(nproc 2>/dev/null || echo 8)
+WORKERS="${GPU_CHECK_WORKERS:-$(( NPROC / 2 > 12 ? 12 : (NPROC / 2 < 1 ? 1 : NPROC / 2) ))}"
 BENCHES="${GPU_CHECK_BENCHES:-implicit volume tetra}"
 T_START=$(date +%s)
 
@@ -207,8 +210,11 @@ if [ "$WORKERS" != "0" ]; then
 fi
 if has pytest && has hypothesis; then
     # shellcheck disable=SC2086  # GPU_CHECK_TESTS is a list of paths
-    stage tests 200 "$PYTHON" -m pytest -m "not heavy" -x -q -p no:cacheprovider \
+    # -v names each test as it finishes (with xdist too), so a stage that runs past its
+    # timeout still says which tests failed; no -x, for the same reason
+    stage tests 240 "$PYTHON" -m pytest -m "not heavy" -v -rf --tb=line -p no:cacheprovider \
         ${XDIST[@]+"${XDIST[@]}"} ${IGNORE[@]+"${IGNORE[@]}"} ${GPU_CHECK_TESTS:-tests}
+    grep -E "(FAILED|ERROR) tests/" "$LOG" | sort -u >"$OUT_DIR/failed_tests.txt"
 else
     echo "tests skipped: pytest or hypothesis (tests/conftest.py needs it) is missing" \
         | tee -a "$LOG"
