@@ -5,10 +5,12 @@ arithmetic (`Interval`, `Affine`, `extend`, `register_rule`), scenes (`ImplicitS
 `CSG`, `VolumeIsosurface` over `OctreeVolume` / `MacrocellGrid`, `TetIsosurface` over
 `TetMesh`), and the render layer (`Camera`, `plan_for`, `intersect`, `render`,
 `save_png`). `surfaces` is the catalogue of the seed's test surfaces; `distributed` joins
-a multi-process run (`initialize`, `process_mesh`).
+a multi-process run (`initialize`, `process_mesh`); `enable_cache` keeps compiled programs
+on disk for later processes.
 """
 
 from . import arith, distributed
+from ._cache import enable_cache
 from ._core import Hits, Plan, Rays, Scene
 from .arith import Affine, Interval, aa, extend, ia, interval, register_rule
 from .implicit import ImplicitSurface, surfaces
@@ -36,4 +38,5 @@ __all__ = ["Interval", "interval", "Affine", "extend", "register_rule", "ia", "a
            "Scene", "Plan", "plan_for",
            "Light", "Shading", "intersect", "render", "save_png", "to_tiles",
            "from_tiles", "OctreeVolume", "VolumeIsosurface", "MacrocellGrid",
-           "VolumeSequence", "lod_for", "TetMesh", "tet_mesh", "TetIsosurface", "__version__"]
+           "VolumeSequence", "lod_for", "TetMesh", "tet_mesh", "TetIsosurface", "enable_cache",
+           "__version__"]

@@ -6,6 +6,9 @@ Bad arguments (unknown surface names, a negative seed, a size out of range, an o
 that is not a writable directory) are reported as argparse reports its own: usage and a
 one-line error on stderr, exit status 2, before any rendering. An OSError while working
 (e.g. a full disk) is one line on stderr and status 1.
+
+Every command keeps its compiled programs on disk (`jaxiso.enable_cache`), so a second run
+skips most compiling; ``--no-cache`` compiles afresh and writes nothing there.
 """
 
 from __future__ import annotations
@@ -261,17 +264,23 @@ def _check_out(out: str, parser) -> None:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="jaxiso", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command")
-    demo = sub.add_parser("demo", help="interval vs affine enclosures on the catalogue")
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--no-cache", action="store_true",
+                        help="compile afresh: do not keep compiled programs on disk "
+                        "(default: kept in $JAXISO_CACHE_DIR or ~/.cache/jaxiso/xla)")
+    demo = sub.add_parser("demo", parents=[common],
+                          help="interval vs affine enclosures on the catalogue")
     demo.add_argument("--names", nargs="*", help="surfaces to show (default: all)")
     demo.add_argument("--seed", type=int, default=0)
-    gallery = sub.add_parser("gallery", help="render the catalogue of test surfaces")
+    gallery = sub.add_parser("gallery", parents=[common],
+                             help="render the catalogue of test surfaces")
     gallery.add_argument("--out", default="gallery", help="output folder (default: gallery)")
     gallery.add_argument("--size", type=int, default=160, help="image edge in pixels")
     gallery.add_argument("--names", nargs="*", help="surfaces to render (default: all)")
     gallery.add_argument("--shadows", action="store_true", help="cast shadow rays")
     gallery.add_argument("--arithmetic", choices=("interval", "affine"),
                          help="override each surface's default arithmetic")
-    one = sub.add_parser("render", help="render one scene, on one or N processes")
+    one = sub.add_parser("render", parents=[common], help="render one scene, on one or N processes")
     one.add_argument("--scene", default="implicit:sphere",
                      help="implicit:NAME | volume:NAME[:N] | tets:N (default implicit:sphere)")
     one.add_argument("--size", type=int, default=256, help="image edge in pixels")
@@ -293,6 +302,10 @@ def main(argv=None) -> int:
     if args.command is None:
         args = gallery.parse_args([], argparse.Namespace(command="gallery"))
     _check(args, {"gallery": gallery, "demo": demo, "render": one}[args.command])
+    if not args.no_cache:
+        from ._cache import enable_cache
+
+        enable_cache()
     try:
         return {"gallery": _gallery, "demo": _demo, "render": _render_one}[args.command](args)
     except OSError as err:  # the disk filling up, a directory removed while rendering
