@@ -1,10 +1,10 @@
-"""Writes notebooks/01_implicits.ipynb (run: python notebooks/make_01.py).
-
-The notebook is stored without outputs; tests/test_notebooks.py executes it at a small
-image size (JAXISO_NB_SIZE=24).
+"""Builds notebooks/01_implicits.ipynb; run as a script (python notebooks/make_01.py),
+it also executes the notebook and stores it with its outputs (every notebook:
+python notebooks/_nbtools.py --all). tests/test_notebooks.py checks that the stored
+copy is not stale and executes it small (JAXISO_NB_SIZE=24).
 """
 
-from _nbtools import ROW, TIMED, Notebook, heat, helpers, setup
+from _nbtools import ROW, TIMED, Notebook, heat, helpers, regenerate, setup
 
 NOTEBOOK = Notebook("01_implicits.ipynb")
 md, code = NOTEBOOK.md, NOTEBOOK.code
@@ -31,7 +31,7 @@ This notebook tours the library:
 7. shadows, transparency and reflections.
 
 Every `ji.render` returns an `Image` (a float `[H, W, 3]` numpy array) that Jupyter
-shows inline. The image size comes from `JAXISO_NB_SIZE` (default 192; the test suite
+shows inline. The image size comes from `JAXISO_NB_SIZE` (default 160; the test suite
 runs this notebook at 24). The first render of a new scene *compiles* (a few seconds on a
 CPU); later renders that only change numbers (parameters, `w`, `eps`, camera) reuse it.
 """)
@@ -46,7 +46,7 @@ import numpy as np
 
 import jaxiso as ji
 from jaxiso.implicit import csg
-""", "192"))
+""", "160"))
 
 code(helpers(ROW, heat("count"), TIMED))
 
@@ -344,4 +344,5 @@ isovalues (`f = 0` outside, `f = -4` inside; colours go by isovalue).
   the rays: see `examples/fit_superquadric.py`.
 """)
 
-NOTEBOOK.write()
+if __name__ == "__main__":
+    regenerate(__file__)  # builds, executes and stores the notebook

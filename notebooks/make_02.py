@@ -1,10 +1,10 @@
-"""Writes notebooks/02_volumes.ipynb (run: python notebooks/make_02.py).
-
-The notebook is stored without outputs; tests/test_notebooks.py executes it at a small
-image size (JAXISO_NB_SIZE=24), which also shrinks its volumes.
+"""Builds notebooks/02_volumes.ipynb; run as a script (python notebooks/make_02.py),
+it also executes the notebook and stores it with its outputs (every notebook:
+python notebooks/_nbtools.py --all). tests/test_notebooks.py checks that the stored
+copy is not stale and executes it small (JAXISO_NB_SIZE=24, which also shrinks its volumes).
 """
 
-from _nbtools import ROW, TIMED, Notebook, helpers, setup
+from _nbtools import ROW, TIMED, Notebook, helpers, regenerate, setup
 
 NOTEBOOK = Notebook("02_volumes.ipynb")
 md, code = NOTEBOOK.md, NOTEBOOK.code
@@ -36,7 +36,7 @@ itself. This notebook tours:
 9. loading volumes from files,
 10. the derivative of the depth with respect to the isovalue.
 
-The image size comes from `JAXISO_NB_SIZE` (default 256; the test suite runs this
+The image size comes from `JAXISO_NB_SIZE` (default 160; the test suite runs this
 notebook at 24, with 16^3 volumes). The first render of a new scene *structure* (volume
 layout, number of isovalues, shading options, normals, level of detail) compiles, several
 seconds on a CPU; renders that only change numbers (isovalues, clip box, camera, time
@@ -66,7 +66,7 @@ from jaxiso.volume import (
     data,
     lod_for,
 )
-""", "256", more="""
+""", "160", more="""
 N = max(16, min(128, SIZE // 2))   # voxels per axis of the example volumes
 """, note=", {N}^3 volumes"))
 
@@ -533,4 +533,5 @@ hit.
 * Volumes are pytrees: `jax.jvp`/`jax.grad` of depths or images with respect to float
   voxel values work as above.
 """)
-NOTEBOOK.write()
+if __name__ == "__main__":
+    regenerate(__file__)  # builds, executes and stores the notebook

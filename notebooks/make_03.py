@@ -1,10 +1,10 @@
-"""Writes notebooks/03_tet_meshes.ipynb (run: python notebooks/make_03.py).
-
-The notebook is stored without outputs; tests/test_notebooks.py executes it at a small
-image size (JAXISO_NB_SIZE=24).
+"""Builds notebooks/03_tet_meshes.ipynb; run as a script (python notebooks/make_03.py),
+it also executes the notebook and stores it with its outputs (every notebook:
+python notebooks/_nbtools.py --all). tests/test_notebooks.py checks that the stored
+copy is not stale and executes it small (JAXISO_NB_SIZE=24).
 """
 
-from _nbtools import ROW, TIMED, Notebook, heat, helpers, setup
+from _nbtools import ROW, TIMED, Notebook, heat, helpers, regenerate, setup
 
 NOTEBOOK = Notebook("03_tet_meshes.ipynb")
 md, code = NOTEBOOK.md, NOTEBOOK.code
@@ -451,4 +451,5 @@ md("""
   directly.
 """)
 
-NOTEBOOK.write()
+if __name__ == "__main__":
+    regenerate(__file__)  # builds, executes and stores the notebook

@@ -1,10 +1,11 @@
-"""Writes notebooks/04_neural_implicits.ipynb (run: python notebooks/make_04.py).
-
-The notebook is stored without outputs; tests/test_notebooks.py executes it at a small
-image size (JAXISO_NB_SIZE=24). It needs optax (the `test` and `notebooks` extras).
+"""Builds notebooks/04_neural_implicits.ipynb; run as a script (python notebooks/make_04.py),
+it also executes the notebook and stores it with its outputs (every notebook:
+python notebooks/_nbtools.py --all). tests/test_notebooks.py checks that the stored
+copy is not stale and executes it small (JAXISO_NB_SIZE=24).
+It needs optax (the `test` and `notebooks` extras).
 """
 
-from _nbtools import ROW, TIMED, Notebook, heat, helpers, setup
+from _nbtools import ROW, TIMED, Notebook, heat, helpers, regenerate, setup
 
 NOTEBOOK = Notebook("04_neural_implicits.ipynb")
 md, code = NOTEBOOK.md, NOTEBOOK.code
@@ -24,7 +25,7 @@ them through the hits.
 3. interval vs affine arithmetic on networks: time, hits and enclosure widths,
 4. gradients of a depth image with respect to the weights, and one optimiser step.
 
-The image size comes from `JAXISO_NB_SIZE` (default 32; the test suite runs this
+The image size comes from `JAXISO_NB_SIZE` (default 64; the test suite runs this
 notebook at 24). Training is 800 small steps (seconds): the point is the workflow, not
 a faithful fit (`examples/fit_neural_sdf.py` trains longer).
 """)
@@ -40,7 +41,7 @@ import numpy as np
 import optax
 
 import jaxiso as ji
-""", "32"))
+""", "64"))
 
 code(helpers(ROW, heat("value"), TIMED))
 
@@ -378,4 +379,5 @@ md("""
   object the tracer bisects with.
 """)
 
-NOTEBOOK.write()
+if __name__ == "__main__":
+    regenerate(__file__)  # builds, executes and stores the notebook
