@@ -11,8 +11,9 @@ from . import data
 from ._bvh import BVH, build_bvh, bvh_stats, memory_report, refit, refit_jax
 from ._mesh import TetMesh, from_meshio, from_pyvista, tet_mesh
 from ._scene import TetIsosurface
+from ._split import SplitTets, split_tets
 from ._traverse import traverse
 
 __all__ = ["TetMesh", "tet_mesh", "from_meshio", "from_pyvista", "BVH", "build_bvh",
            "refit", "refit_jax", "bvh_stats", "memory_report", "TetIsosurface", "traverse",
-           "data"]
+           "data", "SplitTets", "split_tets"]

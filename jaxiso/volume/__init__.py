@@ -3,7 +3,7 @@ dense macrocell-grid baseline, exact trilinear cell intersection, level of detai
 time-varying sequences."""
 
 from . import data
-from ._bricks import BrickedVolume, brick_volume, nearest_hits
+from ._bricks import BrickedVolume, SampledField, brick_volume, nearest_hits
 from ._hierarchy import MacrocellGrid
 from ._lod import LevelOfDetail, lod_for
 from ._octree import OctreeVolume
@@ -12,4 +12,4 @@ from ._sequence import VolumeSequence
 
 __all__ = ["OctreeVolume", "VolumeIsosurface", "MacrocellGrid", "VolumeSequence",
            "LevelOfDetail", "lod_for", "data", "BrickedVolume",
-           "brick_volume", "nearest_hits"]
+           "brick_volume", "nearest_hits", "SampledField"]

@@ -2,39 +2,39 @@
 collective minimum of `t` (DESIGN.md "Past one machine"; OSPRay's MPI module is the
 anchor: every rank renders its own brick, first hits composite by depth).
 
-A volume of n voxel planes along `axis` is cut into B bricks that share one voxel plane
-with each neighbour, so every cell (between two planes) lies in exactly one brick and a
-seam's cells need nothing from the next brick. Each brick is its own `VolumeIsosurface`
-(its own min/max octree, origin moved to the brick's first plane, clip box cut to the
-brick's cells); the bricks' arrays are stacked along a leading axis [B, ...] that is
-sharded over a one-axis mesh, one brick per device, so the whole volume never exists on
-one device, and a process builds only the bricks of its own devices.
+A volume of n voxel planes per axis is cut by a brick grid (gx, gy, gz) into
+gx * gy * gz bricks; along each axis neighbouring bricks share one voxel plane, so every
+cell (between two planes) lies in exactly one brick and a seam's cells need nothing from
+the next brick. Each brick is its own `VolumeIsosurface` (its own min/max octree, origin
+moved to the brick's first voxel, clip box cut to the brick's cells); the bricks are
+stacked over a one-axis mesh by `jaxiso._split.stack_parts` (brick k, in C order over
+the grid, on device k), so the whole volume never exists on one device, and a process
+reads and builds only the bricks of its own devices: `data` may be a np.memmap, an h5py
+or zarr dataset, or a `SampledField` that computes just the voxels asked for.
 
-`BrickedVolume.intersect_packet` traces every ray through every brick (each device its
-own) and keeps, per ray, the hit of smallest `t` across the mesh: `nearest_hits`, a
-`pmin` of t and of the winning brick's index, then one `psum` that carries the winner's
-hit, normal, surface and steps. Scenes never import `render`: the mesh comes from the
-caller.
+Tracing and compositing are `jaxiso._split.SplitScene`'s: every device traces all rays
+through its own brick and `nearest_hits` keeps the nearest hit per ray (a `pmin` of t,
+one `psum` carrying hit, normal, surface and steps).
 """
 
 from __future__ import annotations
 
-import copy
+import math
 
-import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jax.sharding import Mesh
 
-from .._core import LANES, Hits, Plan, SceneFields, pytree_dataclass, static_field
+from .._core import pytree_dataclass, static_field
+from .._split import SPLIT_LANES_FROM, SplitScene, local_parts, nearest_hits, stack_parts
 from ._octree import OctreeVolume
 from ._scene import VolumeIsosurface
 
-__all__ = ["BrickedVolume", "brick_bounds", "brick_volume", "nearest_hits"]
+__all__ = ["BrickedVolume", "brick_bounds", "brick_grid", "brick_volume", "nearest_hits",
+           "SampledField"]
 
-# bricks trace on persistent lanes from this many rays on the CPU (one volume: 2^16):
-# their packets each wait for a collective (`BrickedVolume.preferred_plan`)
-BRICK_LANES_FROM = 2**14
+# kept under its first name (bricks were the first split scene)
+BRICK_LANES_FROM = SPLIT_LANES_FROM
 
 
 def brick_bounds(n: int, bricks: int) -> list[tuple[int, int]]:
@@ -53,237 +53,162 @@ def brick_bounds(n: int, bricks: int) -> list[tuple[int, int]]:
     return [(k * m, k * m + m + 1) for k in range(bricks)]
 
 
-def _read_brick(data, axis: int, start: int, stop: int) -> np.ndarray:
-    """Planes [start, stop) of `data` along axis (any array-like that slices, e.g. a
-    np.memmap or an h5py dataset: only this brick is read); planes past the end repeat
-    the last one (`brick_volume` clips them off)."""
-    n = data.shape[axis]
-    index = [slice(None)] * 3
-    index[axis] = slice(start, min(stop, n))
-    brick = np.asarray(data[tuple(index)])
-    short = stop - min(stop, n)
-    if short:
-        pad = [(0, 0)] * 3
-        pad[axis] = (0, short)
+def brick_grid(shape, grid) -> list[tuple[tuple[int, int], ...]]:
+    """Per brick (C order over `grid`), its voxel ranges ((x0, x1), (y0, y1), (z0, z1)),
+    each from `brick_bounds` along its axis (an axis cut into 1 brick keeps all planes)."""
+    grid = _grid3(grid)
+    per_axis = [brick_bounds(int(n), g) for n, g in zip(shape, grid)]
+    return [tuple(per_axis[a][i] for a, i in enumerate(idx))
+            for idx in np.ndindex(*grid)]
+
+
+def _grid3(grid) -> tuple[int, int, int]:
+    g = tuple(int(x) for x in np.broadcast_to(np.asarray(grid), (3,)))
+    if any(x < 1 for x in g) or len(np.shape(grid)) > 1:
+        raise ValueError(f"grid must be 3 positive brick counts, got {grid!r}")
+    return g
+
+
+class SampledField:
+    """A volume defined by a function, read brick by brick: an array-like of `shape`
+    whose slices `fn` computes on demand (so a process builds its brick without the
+    whole array ever existing).
+
+    fn(i, j, k) gets integer voxel indices as broadcasting arrays (np.ix_ of the slice's
+    ranges) and returns the values there (any array broadcastable to the slice's shape);
+    world coordinates are ``origin + index * spacing``.
+    """
+
+    def __init__(self, fn, shape, dtype=np.float32):
+        self.fn = fn
+        self.shape = tuple(int(n) for n in shape)
+        self.dtype = np.dtype(dtype)
+        if len(self.shape) != 3 or min(self.shape) < 1:
+            raise ValueError(f"SampledField needs a 3-D shape, got {shape!r}")
+
+    def __getitem__(self, index) -> np.ndarray:
+        if not isinstance(index, tuple):
+            index = (index,)
+        index = index + (slice(None),) * (3 - len(index))
+        if len(index) != 3 or not all(isinstance(s, slice) for s in index):
+            raise TypeError(f"SampledField reads slices only, got {index!r}")
+        ranges = [np.arange(n)[s] for n, s in zip(self.shape, index)]
+        values = np.asarray(self.fn(*np.ix_(*ranges)), self.dtype)
+        return np.broadcast_to(values, tuple(len(r) for r in ranges)).copy()
+
+
+def _read_brick(data, ranges) -> np.ndarray:
+    """The voxels ranges [(start, stop)] * 3 of `data` (any array-like that slices: only
+    this brick is read); planes past the end of an axis repeat its last one
+    (`_brick_scene` clips them off)."""
+    index = tuple(slice(a, min(b, n)) for (a, b), n in zip(ranges, data.shape))
+    brick = np.asarray(data[index])
+    pad = [(0, b - min(b, n)) for (a, b), n in zip(ranges, data.shape)]
+    if any(p for _, p in pad):
         brick = np.pad(brick, pad, mode="edge")
     return brick
 
 
-def _brick_scene(data, axis, bounds, n, isovalues, spacing, origin, clip_box, options,
+def _brick_scene(data, ranges, isovalues, spacing, origin, clip_box, options,
                  build) -> VolumeIsosurface:
-    """The `VolumeIsosurface` of one brick: its own octree, origin at its first plane,
+    """The `VolumeIsosurface` of one brick: its own octree, origin at its first voxel,
     clip box = the user's box cut to the brick's real cells."""
-    start, stop = bounds
-    spacing = np.broadcast_to(np.asarray(spacing, np.float32), (3,))
-    origin = np.broadcast_to(np.asarray(origin, np.float32), (3,)).copy()
-    whole_hi = origin + (np.asarray(data.shape, np.float32) - 1) * spacing
-    brick_origin = origin.copy()
-    brick_origin[axis] = origin[axis] + start * spacing[axis]
-    vol = OctreeVolume.from_array(_read_brick(data, axis, start, stop), spacing=spacing,
+    n = np.asarray(data.shape)
+    start = np.array([a for a, _ in ranges])
+    stop = np.array([b for _, b in ranges])
+    brick_origin = origin + start * spacing
+    vol = OctreeVolume.from_array(_read_brick(data, ranges), spacing=spacing,
                                   origin=brick_origin, progress=False, **build)
-    lo, hi = origin.copy(), whole_hi.copy()
-    lo[axis] = brick_origin[axis]
-    hi[axis] = origin[axis] + min(stop - 1, n - 1) * spacing[axis]
+    lo = brick_origin.astype(np.float32)
+    hi = (origin + (np.minimum(stop, n) - 1) * spacing).astype(np.float32)
     if clip_box is not None:
         c_lo, c_hi = (np.broadcast_to(np.asarray(c, np.float32), (3,)) for c in clip_box)
         lo, hi = np.maximum(lo, c_lo), np.minimum(hi, c_hi)
     if np.any(lo > hi):  # the clip box misses this brick: a box past the whole volume
-        lo = hi = whole_hi + spacing
+        lo = hi = (origin + n * spacing).astype(np.float32)
     return VolumeIsosurface(vol, isovalues, clip_box=(lo, hi), **options)
 
 
-def _padded(leaf: np.ndarray, shape) -> np.ndarray:
-    """leaf zero-padded at the end of every axis to `shape` (extra octree records and caps
-    are never reached: no record points at them)."""
-    return np.pad(leaf, [(0, s - n) for n, s in zip(leaf.shape, shape)])
+def brick_volume(data, isovalues, mesh: Mesh, *, grid=None, axis: int = 0, spacing=1.0,
+                 origin=0.0, clip_box=None, variance=0.0, iso_range=None,
+                 **options) -> BrickedVolume:
+    """A `BrickedVolume` of `data` [nx, ny, nz], one brick per device of `mesh` (a
+    one-axis Mesh, possibly over several processes).
 
-
-def _largest_shapes(leaves_per_brick, mesh: Mesh) -> list[tuple]:
-    """Per leaf, the largest shape over all bricks of all processes (an all-gather of
-    the few shape numbers through JAX's runtime when the mesh spans processes)."""
-    local = np.array([[s for leaf in leaves for s in leaf.shape]
-                      for leaves in leaves_per_brick], np.int64).max(axis=0)
-    if any(d.process_index != jax.process_index() for d in mesh.devices.flat):
-        from jax.experimental import multihost_utils
-
-        local = np.asarray(multihost_utils.process_allgather(local)).reshape(
-            -1, local.size).max(axis=0)
-    shapes, i = [], 0
-    for leaf in leaves_per_brick[0]:
-        shapes.append(tuple(int(s) for s in local[i:i + leaf.ndim]))
-        i += leaf.ndim
-    return shapes
-
-
-def brick_volume(data, isovalues, mesh: Mesh, *, axis: int = 0, spacing=1.0, origin=0.0,
-                 clip_box=None, variance=0.0, iso_range=None, **options) -> BrickedVolume:
-    """A `BrickedVolume` of `data` [nx, ny, nz] cut along `axis`, one brick per device
-    of `mesh` (a one-axis Mesh, possibly over several processes).
-
-    data: any array-like with `.shape` that slices (numpy, np.memmap, h5py, zarr); each
-      process reads only the planes of its own devices' bricks.
+    data: any array-like with `.shape` that slices (numpy, np.memmap, h5py, zarr, a
+      `SampledField`); each process reads only the voxels of its own devices' bricks.
+    grid: bricks per axis (gx, gy, gz) with gx * gy * gz == the mesh's device count;
+      brick k (C order over the grid) goes to device k. None: all bricks along `axis`.
     isovalues, clip_box, options (method, traversal, normals, max_steps): as
       `VolumeIsosurface`; variance, iso_range: as `OctreeVolume.from_array`.
     The octrees are built on the host, one brick at a time. Level of detail is not
     supported here (each brick's coarse levels would need the neighbour's voxels).
     """
-    if len(mesh.axis_names) != 1:
-        raise ValueError(f"bricks go over a mesh with one axis, got {mesh.axis_names}")
-    if not 0 <= axis < 3 or len(data.shape) != 3:
-        raise ValueError(f"need 3-D data and axis in 0..2, got shape {data.shape}, "
-                         f"axis {axis}")
+    n_dev = int(mesh.devices.size)
+    mine = local_parts(mesh)
+    if len(data.shape) != 3:
+        raise ValueError(f"need 3-D data, got shape {data.shape}")
+    if grid is None:
+        if not 0 <= axis < 3:
+            raise ValueError(f"axis must be in 0..2, got {axis}")
+        grid = tuple(n_dev if a == axis else 1 for a in range(3))
+    grid = _grid3(grid)
+    if math.prod(grid) != n_dev:
+        raise ValueError(f"grid {grid} has {math.prod(grid)} bricks for {n_dev} devices")
     if options.get("lod") is not None:
         raise ValueError("level of detail is not supported on a BrickedVolume")
-    devices = list(mesh.devices.flat)
-    n = int(data.shape[axis])
-    bounds = brick_bounds(n, len(devices))
-    mine = [k for k, d in enumerate(devices) if d.process_index == jax.process_index()]
+    if options.get("normals") == "central":
+        raise ValueError("a BrickedVolume uses trilinear normals (central differences "
+                         "would read voxels of the neighbouring brick)")
+    shape = tuple(int(s) for s in data.shape)
+    bricks = brick_grid(shape, grid)
+    spacing3 = np.broadcast_to(np.asarray(spacing, np.float64), (3,))
+    origin3 = np.broadcast_to(np.asarray(origin, np.float64), (3,))
     build = dict(variance=variance, iso_range=iso_range)
-    scenes = [_brick_scene(data, axis, bounds[k], n, isovalues, spacing, origin, clip_box,
+    scenes = [_brick_scene(data, bricks[k], isovalues, spacing3, origin3, clip_box,
                            options, build) for k in mine]
-    flat = [jax.tree_util.tree_flatten(s) for s in scenes]
-    treedef = flat[0][1]
-    leaves = [[np.asarray(x) for x in f[0]] for f in flat]
-    shapes = _largest_shapes(leaves, mesh)
-    sharding = NamedSharding(mesh, PartitionSpec(mesh.axis_names[0]))
-    stacked = []
-    for j, shape in enumerate(shapes):
-        parts = [jax.device_put(_padded(leaves[i][j], shape)[None], devices[k])
-                 for i, k in enumerate(mine)]
-        stacked.append(jax.make_array_from_single_device_arrays(
-            (len(devices),) + shape, sharding, parts))
-    bricks = jax.tree_util.tree_unflatten(treedef, stacked)
-    spacing3 = np.broadcast_to(np.asarray(spacing, np.float32), (3,))
-    origin3 = np.broadcast_to(np.asarray(origin, np.float32), (3,))
-    lo = origin3
-    hi = origin3 + (np.asarray(data.shape, np.float32) - 1) * spacing3
+    lo = origin3.astype(np.float32)
+    hi = (origin3 + (np.asarray(shape) - 1) * spacing3).astype(np.float32)
     if clip_box is not None:
         lo = np.maximum(lo, np.broadcast_to(np.asarray(clip_box[0], np.float32), (3,)))
         hi = np.minimum(hi, np.broadcast_to(np.asarray(clip_box[1], np.float32), (3,)))
-    return BrickedVolume(bricks=bricks, box_lo=jnp.asarray(lo), box_hi=jnp.asarray(hi),
-                         spacing=jnp.asarray(spacing3), mesh=mesh, axis=axis,
-                         shape=tuple(int(s) for s in data.shape))
-
-
-def nearest_hits(hits: Hits, axis_name: str) -> Hits:
-    """Per ray, the hit of smallest `t` over the devices of mesh axis `axis_name` (call
-    inside `shard_map`); ties go to the lowest device index. Every device returns the
-    same Hits [P]: the winner's t, hit, normal, surface and steps."""
-    t = jax.lax.pmin(hits.t, axis_name)
-    me = jax.lax.axis_index(axis_name)
-    owner = jax.lax.pmin(jnp.where(hits.t == t, me, jnp.iinfo(jnp.int32).max), axis_name)
-    mine = owner == me
-
-    def winner(x):
-        keep = mine.reshape(mine.shape + (1,) * (x.ndim - mine.ndim))
-        return jnp.where(keep, x, jnp.zeros((), x.dtype))
-
-    hit, normal, surface, steps = jax.lax.psum(
-        (winner(hits.hit.astype(jnp.int32)), winner(hits.normal), winner(hits.surface),
-         winner(hits.steps)), axis_name)
-    return Hits(t=t, hit=hit > 0, normal=normal, surface=surface, steps=steps)
+    return BrickedVolume(parts=stack_parts(scenes, mesh), box_lo=jnp.asarray(lo),
+                         box_hi=jnp.asarray(hi),
+                         offset=jnp.float32(1e-3 * np.min(spacing3)), mesh=mesh,
+                         grid=grid, shape=shape)
 
 
 @pytree_dataclass
-class BrickedVolume(SceneFields):
+class BrickedVolume(SplitScene):
     """A volume isosurface split into bricks, one per device of `mesh` (build with
     `brick_volume`); a scene (`jaxiso.Scene`) for `intersect` and `render`.
 
-    Attributes:
-      bricks: a `VolumeIsosurface` whose every array has a leading brick axis [B, ...],
-        sharded over the mesh axis (brick k on device k).
-      box_lo, box_hi: [3] the whole volume's drawn box (replicated).
-      spacing: [3] voxel spacing.
-      mesh: the one-axis mesh the bricks live on (static).
-      axis: the axis the volume is cut along; shape: the whole volume's shape (static).
+    Attributes (beyond `SplitScene`'s parts, box_lo, box_hi, offset, mesh):
+      grid: bricks per axis (static); shape: the whole volume's shape (static).
 
-    Every device traces all rays through its own brick; `nearest_hits` composites them.
-    `Hits.steps` is the winning brick's count. Render it with `devices=None` (the rays are
-    not split: the data is). Normals are the trilinear patch's ("central" would read
-    across a seam).
+    `parts` (alias `bricks`) is a `VolumeIsosurface` whose every array has a leading
+    brick axis. Secondary rays leave a surface by a thousandth of a voxel (as one
+    volume). Normals are the trilinear patch's ("central" would read across a seam).
     """
 
-    bricks: VolumeIsosurface
-    box_lo: jax.Array
-    box_hi: jax.Array
-    spacing: jax.Array
-    mesh: Mesh = static_field()
-    axis: int = static_field(0)
+    grid: tuple = static_field((1, 1, 1))
     shape: tuple = static_field(())
 
     def _validate(self):
-        if not isinstance(self.bricks, VolumeIsosurface):
-            raise TypeError("bricks must be a stacked VolumeIsosurface (use brick_volume)")
-        if self.bricks.normals == "central":
+        if not isinstance(self.parts, VolumeIsosurface):
+            raise TypeError("parts must be a stacked VolumeIsosurface (use brick_volume)")
+        if self.parts.normals == "central":
             raise ValueError("a BrickedVolume uses trilinear normals (central differences "
                              "would read voxels of the neighbouring brick)")
 
     @property
+    def bricks(self) -> VolumeIsosurface:
+        return self.parts
+
+    @property
     def n_bricks(self) -> int:
-        return int(self.mesh.devices.size)
-
-    @property
-    def lo(self):
-        return self.box_lo
-
-    @property
-    def hi(self):
-        return self.box_hi
-
-    @property
-    def offset_scale(self):
-        """Secondary rays leave a surface by a thousandth of a voxel (as one volume)."""
-        return 1e-3 * jnp.min(self.spacing)
-
-    def coarser(self, factor) -> BrickedVolume:
-        """No level of detail on bricks: shadow rays trace the same scene."""
-        return self
-
-    def preferred_plan(self, n_rays: int, backend: str) -> Plan:
-        """32x32 packets (one collective per 1024 rays) up to 2^14 rays, and on the CPU
-        4096 persistent lanes from there (one collective per trace).
-
-        A packet's collective costs far more than its tracing. 2 local processes (gloo,
-        one thread each, a loaded 2-core box): 32^2 pixels of a 33^3 volume in 2 bricks,
-        frame 344 ms in 8x8 packets, 56 ms in 32x32, 30 ms on 1024 lanes (first call
-        13 / 17 / 46 s; one process, whole volume: 12 ms); 128^2 of 96^3: 16x16 packets
-        1720 ms, 32x32 868 ms, 4096 lanes 260 ms (first call 17 / 21 / 78 s; one process,
-        whole volume: 244 ms). Other backends: packets (unmeasured)."""
-        lanes = LANES if backend == "cpu" and n_rays >= BRICK_LANES_FROM else None
-        return Plan(tile=32, lanes=lanes)
+        return self.n_parts
 
     def brick_nbytes(self) -> int:
         """Bytes of one brick's arrays (what each device holds of the volume)."""
-        return int(sum(leaf.nbytes // leaf.shape[0]
-                       for leaf in jax.tree_util.tree_leaves(self.bricks)))
-
-    def with_isovalues(self, isovalues) -> BrickedVolume:
-        """The same bricks at other isovalues (same count: no recompile)."""
-        iso = np.atleast_1d(np.asarray(isovalues, np.float32))
-        if iso.shape != tuple(self.bricks.isovalues.shape[1:]):
-            raise ValueError(f"with_isovalues keeps the count {self.bricks.isovalues.shape[1]}"
-                             f", got shape {iso.shape}")
-        sharding = NamedSharding(self.mesh, PartitionSpec(self.mesh.axis_names[0]))
-        stacked = np.broadcast_to(iso, (self.n_bricks,) + iso.shape)
-        glob = jax.make_array_from_callback(stacked.shape, sharding, lambda i: stacked[i])
-        bricks = copy.copy(self.bricks)
-        object.__setattr__(bricks, "isovalues", glob)
-        return self.replace(bricks=bricks)
-
-    def intersect_packet(self, rays, t_min, t_max, *, lanes: int | None = None) -> Hits:
-        """First hits of rays [P] (the scene protocol): every device traces all P rays
-        through its own brick, then `nearest_hits` keeps the nearest per ray."""
-        axis_name = self.mesh.axis_names[0]
-        brick_spec = PartitionSpec(axis_name)
-
-        def one_brick(bricks, rays, t_min, t_max):
-            brick = jax.tree_util.tree_map(lambda a: a[0], bricks)
-            hits = brick.intersect_packet(rays, t_min, t_max, lanes=lanes)
-            return nearest_hits(hits, axis_name)
-
-        specs = (jax.tree_util.tree_map(lambda _: brick_spec, self.bricks),
-                 PartitionSpec(), PartitionSpec(), PartitionSpec())
-        return jax.shard_map(one_brick, mesh=self.mesh, in_specs=specs,
-                             out_specs=PartitionSpec(), check_vma=False)(
-            self.bricks, rays, t_min, t_max)
-
+        return self.part_nbytes()
