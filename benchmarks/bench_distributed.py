@@ -19,7 +19,17 @@ alone (rays: the all-gather of the image's colours; bricks: the `nearest_hits` c
 of one packet per 8x8 tile, as the render runs it), the scene bytes this process's device
 holds and its peak RSS. Writes <out>/distributed_cpu.json and distributed_cpu.png.
 
+Brick grids (`--grids`, one process with as many CPU devices as bricks, through
+XLA_FLAGS=--xla_force_host_platform_device_count): the volume cut by grids (2,1,1),
+(2,2,1), (2,2,2) and the tet mesh of `tetra.data.cube_tets(--tets)` split into as many
+parts: bytes each device holds (one brick / part, padded to the largest) against the
+whole scene's, their sum over devices (the shared planes and padding), build and first
+call seconds, the frame, and the largest depth difference (voxels) and hit-mask
+agreement against the whole scene rendered alone. The devices of one process share the
+2 cores, so these frames show the cost of the composite, not a speedup.
+
     python benchmarks/bench_distributed.py [--size 128] [--n 96] [--repeats 5]
+        [--grids 2,1,1 2,2,1 2,2,2] [--grid-size 64] [--tets 12]
 """
 
 from __future__ import annotations
@@ -140,7 +150,68 @@ def _composite_time(mesh, n_rays, packet, repeats):
     return _median_s(lambda: run(seed), repeats)
 
 
+def grid_worker(args) -> None:
+    """One process with prod(grid) CPU devices: the volume as a brick grid and the tet
+    mesh in as many parts against the whole scenes (bytes, times, agreement)."""
+    import jax
+    import numpy as np
+
+    import jaxiso as ji
+    from jaxiso.distributed import process_mesh
+    from jaxiso.tetra import TetIsosurface, split_tets, tet_mesh
+    from jaxiso.tetra import data as tdata
+    from jaxiso.volume import OctreeVolume, VolumeIsosurface, brick_volume, data
+
+    grid = tuple(int(g) for g in args.grid.split(","))
+    assert len(jax.devices()) == int(np.prod(grid)), jax.devices()
+    vox = np.load(args.volume_file, mmap_mode="r")
+    spacing, origin = data.box_geometry(vox.shape, *data.DOMAINS["marschner_lobb"])
+    iso = data.ISOVALUES["marschner_lobb"]
+    points, tets = tdata.cube_tets(args.tets)
+    mesh = tet_mesh(points, tets, tdata.sphere_field(points))
+    cases = {
+        "volume": (lambda: VolumeIsosurface(OctreeVolume.from_array(
+                       np.asarray(vox), spacing=spacing, origin=origin, progress=False), iso),
+                   lambda: brick_volume(vox, iso, process_mesh("bricks"), grid=grid,
+                                        spacing=spacing, origin=origin),
+                   ji.Camera.look_at((2.6, 1.8, 1.4), (0, 0, 0), (0, 0, 1), 40.0,
+                                     args.grid_size), spacing[0]),
+        "tets": (lambda: TetIsosurface(mesh, 0.0),
+                 lambda: split_tets(mesh, 0.0, process_mesh("parts"), grid=grid),
+                 ji.Camera.look_at((1.9, 1.5, 1.3), (0.5, 0.5, 0.5), (0, 0, 1), 40.0,
+                                   args.grid_size), 1.0 / args.tets),
+    }
+    for kind, (whole_fn, split_fn, cam, cell) in cases.items():
+        row = dict(section="grid", kind=kind, grid=list(grid), devices=len(jax.devices()))
+        for name, make in (("whole", whole_fn), ("split", split_fn)):
+            t0 = time.perf_counter()
+            scene = make()
+            row[f"{name}_build_s"] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            jax.block_until_ready(ji.render(scene, cam))
+            row[f"{name}_first_call_s"] = time.perf_counter() - t0
+            row[f"{name}_frame_s"] = _median_s(lambda s=scene: ji.render(s, cam),
+                                               args.repeats)
+            hits = jax.device_get(ji.intersect(scene, cam.rays()))
+            row[f"{name}_hits"] = hits
+            if name == "whole":
+                row["whole_nbytes"] = int(sum(
+                    np.asarray(x).nbytes for x in jax.tree_util.tree_leaves(scene)))
+            else:
+                row["per_device_nbytes"] = scene.part_nbytes()
+                row["all_devices_nbytes"] = scene.part_nbytes() * scene.n_parts
+        a, b = row.pop("whole_hits"), row.pop("split_hits")
+        both = a.hit & b.hit
+        row["hit_agreement"] = float((a.hit == b.hit).mean())
+        row["max_depth_diff_cells"] = float(np.abs(a.t - b.t)[both].max() / cell
+                                            if both.any() else 0.0)
+        row["per_device_share"] = row["per_device_nbytes"] / row["whole_nbytes"]
+        print("RESULT " + json.dumps(row), flush=True)
+
+
 def worker(args) -> None:
+    if args.grid:
+        return grid_worker(args)
     from jaxiso import distributed
 
     if args.processes > 1:
@@ -215,6 +286,23 @@ def _run(config, processes, args, volume_file) -> list[dict]:
     return results
 
 
+def _run_grid(grid, args, volume_file) -> list[dict]:
+    """The brick-grid section for one grid: a fresh process with prod(grid) devices."""
+    count = 1
+    for g in grid.split(","):
+        count *= int(g)
+    env = dict(os.environ, JAX_PLATFORMS="cpu",
+               XLA_FLAGS=f"--xla_force_host_platform_device_count={count}")
+    cmd = [sys.executable, str(pathlib.Path(__file__).resolve()), "--worker", "--grid",
+           grid, "--grid-size", str(args.grid_size), "--tets", str(args.tets),
+           "--repeats", str(args.repeats), "--volume-file", volume_file]
+    out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=args.timeout)
+    lines = [ln for ln in out.stdout.splitlines() if ln.startswith("RESULT ")]
+    if out.returncode != 0 or not lines:
+        raise RuntimeError(f"grid {grid} failed:\n{out.stderr[-3000:]}")
+    return [json.loads(ln[7:]) for ln in lines]
+
+
 def _summary(rows) -> dict:
     """Per configuration: frame times at 1 and 2 processes, speedup, collective share,
     bytes per device and peak RSS (max over processes)."""
@@ -243,7 +331,7 @@ def _summary(rows) -> dict:
     return out
 
 
-def _chart(summary, path):
+def _chart(summary, grid_rows, path):
     try:
         import matplotlib
 
@@ -252,7 +340,7 @@ def _chart(summary, path):
     except ImportError:
         return None
     names = list(summary)
-    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.6))
+    fig, (a, b, c) = plt.subplots(1, 3, figsize=(15, 3.6))
     x = range(len(names))
     a.bar([i - 0.2 for i in x], [summary[n]["frame_1_s"] for n in names], 0.4,
           label="1 process")
@@ -270,6 +358,22 @@ def _chart(summary, path):
     b.set_xticks(list(x), names)
     b.set_ylabel("scene MiB per device")
     b.legend(fontsize=8)
+    for kind, marker in (("volume", "o"), ("tets", "s")):
+        rows = [r for r in grid_rows if r["kind"] == kind]
+        c.plot([r["devices"] for r in rows], [r["per_device_share"] for r in rows],
+               marker=marker, label=f"{kind}: one part / whole")
+        c.plot([r["devices"] for r in rows],
+               [r["all_devices_nbytes"] / r["whole_nbytes"] for r in rows], marker=marker,
+               ls="--", label=f"{kind}: all parts / whole")
+    if grid_rows:
+        c.plot([1, 8], [1, 1 / 8], color="grey", lw=0.8, label="1 / devices")
+        c.set_xscale("log", base=2)
+        c.set_yscale("log", base=2)
+        c.set_xlabel("devices (bricks " + ", ".join(
+            "x".join(map(str, r["grid"])) for r in grid_rows if r["kind"] == "volume")
+            + ")")
+        c.set_ylabel("bytes, share of the whole scene")
+        c.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     return str(path)
@@ -281,6 +385,11 @@ def main(argv=None) -> int:
     parser.add_argument("--n", type=int, default=96, help="volume edge in voxels")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--configs", nargs="*", default=list(CONFIGS), choices=CONFIGS)
+    parser.add_argument("--grids", nargs="*", default=["2,1,1", "2,2,1", "2,2,2"],
+                        help="brick grids gx,gy,gz of the one-process section (none: skip)")
+    parser.add_argument("--grid-size", type=int, default=64,
+                        help="image edge of the brick-grid section")
+    parser.add_argument("--tets", type=int, default=12, help="cube_tets(N) of that section")
     parser.add_argument("--out", default=str(HERE / "results"))
     parser.add_argument("--timeout", type=int, default=900, help="seconds per run")
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
@@ -289,6 +398,7 @@ def main(argv=None) -> int:
     parser.add_argument("--rank", type=int, default=0, help=argparse.SUPPRESS)
     parser.add_argument("--coordinator", help=argparse.SUPPRESS)
     parser.add_argument("--volume-file", help=argparse.SUPPRESS)
+    parser.add_argument("--grid", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.worker:
         worker(args)
@@ -322,6 +432,21 @@ def main(argv=None) -> int:
                           + (f", collective {coll * 1e3:7.2f} ms" if coll else "")
                           + f", scene here {r['scene_nbytes_here'] / 2**20:6.2f} MiB, "
                           f"peak RSS {r['peak_rss_mib']:6.0f} MiB", flush=True)
+        grid_rows = []
+        for grid in args.grids:
+            got = _run_grid(grid, args, volume_file)
+            grid_rows.extend(got)
+            for r in got:
+                print(f"  grid {grid:<6} {r['kind']:<7} per device "
+                      f"{r['per_device_nbytes'] / 2**20:6.2f} MiB of "
+                      f"{r['whole_nbytes'] / 2**20:6.2f} ({r['per_device_share']:.3f}), "
+                      f"all devices {r['all_devices_nbytes'] / 2**20:6.2f} MiB; build "
+                      f"{r['whole_build_s']:.2f} / {r['split_build_s']:.2f} s, first "
+                      f"{r['whole_first_call_s']:.1f} / {r['split_first_call_s']:.1f} s, "
+                      f"frame {r['whole_frame_s'] * 1e3:.0f} / "
+                      f"{r['split_frame_s'] * 1e3:.0f} ms; hits agree "
+                      f"{r['hit_agreement']:.5f}, depth within "
+                      f"{r['max_depth_diff_cells']:.1e} cells", flush=True)
     summary = _summary(rows)
     print(f"\n{'config':<10}{'1 proc ms':>10}{'2 proc ms':>10}{'speedup':>9}"
           f"{'cpu x':>7}{'coll %':>8}{'MiB/dev 1':>11}{'MiB/dev 2':>11}")
@@ -332,7 +457,7 @@ def main(argv=None) -> int:
               f"{s['scene_mib_per_device_1']:>11.2f}{s['scene_mib_per_device_2']:>11.2f}")
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    chart = _chart(summary, out / "distributed_cpu.png")
+    chart = _chart(summary, grid_rows, out / "distributed_cpu.png")
     result = dict(benchmark="distributed", backend="cpu", jax=jax.__version__,
                   machine=platform.machine(), cpu_count=os.cpu_count(),
                   size=args.size, volume_n=args.n, repeats=args.repeats,
@@ -343,7 +468,11 @@ def main(argv=None) -> int:
                          "seconds; collective: the same median of a jit running only the "
                          "collective; 2-process figures: the slower process's",
                   load_average=os.getloadavg(),
-                  rows=rows, summary=summary, chart=chart)
+                  rows=rows, summary=summary, chart=chart,
+                  grids=dict(image_size=args.grid_size, tets=args.tets, rows=grid_rows,
+                             timing="one process, as many CPU devices as bricks on 2 "
+                                    "shared cores: whole / split; bytes per device are "
+                                    "one brick or part padded to the largest"))
     path = out / "distributed_cpu.json"
     path.write_text(json.dumps(result, indent=1))
     print(f"wrote {path}")
