@@ -241,7 +241,8 @@ done
 
 # -- 5. more than one process (issue 30): `jaxiso render` on 1 process, then on one process
 # per GPU (CUDA_VISIBLE_DEVICES=k, joined on 127.0.0.1), rays split and a volume in bricks;
-# each process prints its render time (first call, incl. compile) to stages.log.
+# each process prints its render time (first call, incl. compile) to stages.log; with 4 or
+# more GPUs, a 2 x 2 brick grid and 2 x 2 tet parts in one process (RESULT lines).
 # GPU_CHECK_DISTRIBUTED=0 skips it; at most 8 processes.
 distributed_check() {
     local ngpu port k args pids rc=0
@@ -263,11 +264,21 @@ distributed_check() {
         done
         for k in "${pids[@]}"; do wait "$k" || rc=1; done
     done
+    # a brick grid (2, 2, 1) and a tet mesh in 2 x 2 parts over 4 GPUs of one process,
+    # against the whole scenes (bytes per device, frame, hit agreement, depth difference)
+    if [ "$ngpu" -ge 4 ]; then
+        echo "== brick grid 2,2,1 over 4 GPUs (one process)"
+        "$PYTHON" -c "import numpy as np; from jaxiso.volume import data; \
+np.save('$WORK/ml256.npy', data.marschner_lobb(256))" || return 1
+        CUDA_VISIBLE_DEVICES=0,1,2,3 "$PYTHON" benchmarks/bench_distributed.py --worker \
+            --grid 2,2,1 --grid-size 1024 --tets 24 --repeats 3 \
+            --volume-file "$WORK/ml256.npy" || rc=1
+    fi
     return $rc
 }
 export -f distributed_check
 if [ "${GPU_CHECK_DISTRIBUTED:-1}" = "1" ]; then
-    stage distributed 120 bash -c distributed_check
+    stage distributed 300 bash -c distributed_check
 fi
 
 write_summary
