@@ -137,6 +137,8 @@ def scene_options(S):
         v = getattr(S, f.name)
         if isinstance(v, ji.implicit.SignGrid):
             out[f.name] = {"resolution": list(v.resolution)}
+        elif f.name == "facts" and v is not None:
+            out[f.name] = {"heavy": v.heavy, "long_program": v.tape is not None}
         elif v is None or isinstance(v, str | bool | int | float):
             out[f.name] = v
         elif np.size(v) == 1:
@@ -398,7 +400,7 @@ DEFAULT = "jaxiso default"
 def casters(net, cfg, spelunking):
     """(label, kind, description dict, make) for every caster run on a network."""
     start = time.perf_counter()
-    S = user_scene(net)
+    S = user_scene(net).prepared()  # construction checks; preparation measures, builds
     construct_s = time.perf_counter() - start
     lip = net.mlp.lipschitz
     jx = [(DEFAULT, S, "ji.intersect(S, rays)"),

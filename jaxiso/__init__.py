@@ -13,7 +13,7 @@ from . import arith, distributed
 from ._cache import enable_cache
 from ._core import Hits, Plan, Rays, Scene
 from .arith import Affine, Interval, aa, extend, ia, interval, register_rule
-from .implicit import ImplicitSurface, surfaces
+from .implicit import ImplicitSurface, clear_caches, surfaces
 from .implicit.csg import CSG
 from .render import (
     Camera,
@@ -39,4 +39,5 @@ __all__ = ["Interval", "interval", "Affine", "extend", "register_rule", "ia", "a
            "Light", "Shading", "intersect", "render", "save_png", "to_tiles",
            "from_tiles", "OctreeVolume", "VolumeIsosurface", "MacrocellGrid",
            "VolumeSequence", "lod_for", "TetMesh", "tet_mesh", "TetIsosurface", "enable_cache",
+           "clear_caches",
            "__version__"]

@@ -320,11 +320,14 @@ def test_verify_is_validated():
 def test_auto_arithmetic_picks_and_reports():
     sphere = ji.ImplicitSurface(lambda x, y, z: x * x + y * y + z * z - 0.5,
                                 (-1,) * 3, (1,) * 3)
+    assert sphere.arithmetic == "auto" and not sphere.ready  # construction only checks
+    sphere = sphere.prepared()
     assert sphere.arithmetic in ("interval", "affine")
     assert sphere.arithmetic_report.startswith(f"auto: {sphere.arithmetic}")
     # a choice, once made, stays through replace; asking again measures again
     assert sphere.replace(eps=2.0**-8).arithmetic == sphere.arithmetic
     assert sphere.replace(arithmetic="interval").arithmetic == "interval"
+    assert not sphere.replace(arithmetic="auto").ready
 
     def net(x, y, z, params):
         h = jnp.stack([x, y, z])
@@ -336,7 +339,7 @@ def test_auto_arithmetic_picks_and_reports():
     sizes = [3, 32, 32, 32, 32, 1]
     params = [(jnp.asarray(rng.normal(0, 1.2 / np.sqrt(a), (a, b)), jnp.float32),
                jnp.asarray(rng.normal(0, 0.1, b), jnp.float32)) for a, b in zip(sizes, sizes[1:])]
-    scene = ji.ImplicitSurface(net, (-1,) * 3, (1,) * 3, params=params)
+    scene = ji.ImplicitSurface(net, (-1,) * 3, (1,) * 3, params=params).prepared()
     assert scene.arithmetic == "affine", scene.arithmetic_report
 
 
@@ -344,7 +347,7 @@ def test_auto_under_a_trace_picks_affine():
     @jax.jit
     def build_and_hit(r):
         s = ji.ImplicitSurface(lambda x, y, z, p: x * x + y * y + z * z - p, (-1,) * 3,
-                               (1,) * 3, params=r, eps=2.0**-8)
+                               (1,) * 3, params=r, eps=2.0**-8).prepared()
         assert s.arithmetic == "affine" and "trace" in s.arithmetic_report
         return ji.intersect(s, ji.Rays(jnp.asarray([[0.0, 0.0, 3.0]]),
                                        jnp.asarray([[0.0, 0.0, -1.0]]))).t
@@ -379,7 +382,8 @@ def _reference_hits(params, act, o, d, samples=2000):
 def test_shared_network_hit_masks_match_float64(name):
     """Default options (auto arithmetic, verified hits) on a 24^2 view."""
     m = _need(name)
-    scene = ji.ImplicitSurface(m, (-1,) * 3, (1,) * 3, params=m.params, eps=2.0**-10)
+    scene = ji.ImplicitSurface(m, (-1,) * 3, (1,) * 3, params=m.params,
+                               eps=2.0**-10).prepared()
     assert scene.arithmetic == "affine", scene.arithmetic_report
     cam = ji.Camera.look_at((2.2, 1.3, 1.0), (0, 0, 0), (0, 0, 1), 40.0, 24, 24)
     rays = cam.rays()

@@ -134,8 +134,8 @@ def test_one_number_per_point_is_required():
     def f(x, y, z):
         return jnp.stack([x, y, z]) @ _W["W1"][:, :1] - 0.5
 
-    with pytest.raises(ValueError, match="per point"):  # arithmetic="auto" evaluates f
-        ji.ImplicitSurface(f, (LO,) * 3, (HI,) * 3)
+    with pytest.raises(ValueError, match="per point"):  # measuring "auto" evaluates f
+        ji.ImplicitSurface(f, (LO,) * 3, (HI,) * 3).prepared()
     scene = ji.ImplicitSurface(f, (LO,) * 3, (HI,) * 3, arithmetic="interval")
     for method in ("t-bisection", "sampling"):  # through `extend`, through `on_points`
         with pytest.raises(ValueError, match="per point"):

@@ -75,7 +75,7 @@ def _scene(activation="relu", **kw):
 
 @pytest.fixture(scope="module")
 def relu_scene():
-    return _scene()
+    return _scene().prepared()
 
 
 # -- fresh noise symbols in extend ------------------------------------------------------
@@ -196,9 +196,12 @@ def test_grid_holds_at_other_isovalues(relu_scene):
 def test_replace_rebuilds_the_grid_only_when_f_changes(relu_scene):
     S = relu_scene
     assert S.replace(eps=2.0**-9).sign_grid is S.sign_grid
-    assert S.replace(culling="none").sign_grid is None
+    assert S.replace(eps=2.0**-9).ready  # nothing to prepare again
+    assert S.replace(culling="none").prepared().sign_grid is None
     other = _weights(seed=4)["layers"]
     T = S.replace(params=other)
+    assert T.sign_grid is None and not T.ready  # dropped; built by the next preparation
+    T = T.prepared()
     assert T.sign_grid is not None and T.sign_grid is not S.sign_grid
     assert T.sign_grid.resolution == S.sign_grid.resolution == (64,) * 3  # no recompile
     assert not np.array_equal(np.asarray(T.sign_grid.high), np.asarray(S.sign_grid.high))
@@ -209,16 +212,17 @@ def test_no_grid_under_a_trace_and_for_light_functions():
 
     @jax.jit
     def depth(params):
-        S = ji.ImplicitSurface(_field("relu"), (LO,) * 3, (HI,) * 3, params=params, eps=EPS)
+        S = ji.ImplicitSurface(_field("relu"), (LO,) * 3, (HI,) * 3, params=params,
+                               eps=EPS).prepared()
         assert S.sign_grid is None and "traced" in S.culling_report
         return ji.intersect(S, CAM.rays()).t
 
     t = np.asarray(depth(w))
     assert np.isfinite(t).sum() > 100
     sphere = ji.ImplicitSurface(lambda x, y, z: x * x + y * y + z * z - 0.5, (LO,) * 3,
-                                (HI,) * 3)
+                                (HI,) * 3).prepared()
     assert sphere.sign_grid is None and "light" in sphere.culling_report
-    forced = sphere.replace(culling="grid")
+    forced = sphere.replace(culling="grid").prepared()
     assert forced.sign_grid is not None
     np.testing.assert_array_equal(np.asarray(ji.intersect(forced, CAM.rays()).hit),
                                   np.asarray(ji.intersect(sphere, CAM.rays()).hit))
@@ -230,7 +234,8 @@ def test_undefined_cells_are_never_culled():
     def f(x, y, z):
         return jnp.where(x > 0.3, jnp.nan, x * x + y * y + z * z - 0.5)
 
-    S = ji.ImplicitSurface(f, (LO,) * 3, (HI,) * 3, culling="grid", arithmetic="interval")
+    S = ji.ImplicitSurface(f, (LO,) * 3, (HI,) * 3, culling="grid",
+                           arithmetic="interval").prepared()
     assert not np.all(np.isfinite(np.asarray(S.sign_grid.high)))
     rays = CAM.rays()
     np.testing.assert_array_equal(

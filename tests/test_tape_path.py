@@ -90,7 +90,7 @@ def test_t_min_t_max_and_verify_policy_on_the_tape_path():
 def test_long_program_chooses_the_tape_plan_and_renders():
     prog = csg_program(60, seed=2)  # ~1,300 instructions: above the crossover
     lo, hi = (-1.6,) * 3, (1.6,) * 3
-    S = ji.ImplicitSurface(prog, lo, hi)
+    S = ji.ImplicitSurface(prog, lo, hi).prepared()
     assert S.arithmetic == "interval" and "tape path" in S.arithmetic_report
     assert "median enclosure width" in S.arithmetic_report  # measured on the tape
     assert ji.plan_for(S, 1024).tape

@@ -1,12 +1,13 @@
 """`arithmetic="auto"`: pick the cheapest arithmetic that is tight enough for a scene.
 
-At construction the scene's f is extended in interval and in affine arithmetic and both
-are evaluated on sample pieces of rays (32 pieces, 1/64 of the domain's diagonal long,
-at seeded random places and directions in the box: the scale where bisection spends most
-of its steps). Each enclosure's width is compared with f's true range on the piece (9
-point samples, a lower bound of it). Affine costs about twice an interval evaluation per
-piece, so it is chosen when its median width ratio is more than 2x smaller (networks:
-interval enclosures do not shrink with the piece; polynomials: they are within 2x).
+When a scene is prepared (`ImplicitSurface.prepared`, done by its first intersect or
+render) its f is extended in interval and in affine arithmetic and both are evaluated on
+sample pieces of rays (32 pieces, 1/64 of the domain's diagonal long, at seeded random
+places and directions in the box: the scale where bisection spends most of its steps).
+Each enclosure's width is compared with f's true range on the piece (9 point samples, a
+lower bound of it). Affine costs about twice an interval evaluation per piece, so it is
+chosen when its median width ratio is more than 2x smaller (networks: interval
+enclosures do not shrink with the piece; polynomials: they are within 2x).
 Long programs (the tape path) are measured the same way on their tape, where affine costs
 about 8x an interval evaluation (`TAPE_COST_RATIO`).
 """
@@ -18,11 +19,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._core import concrete, on_points
-from ..arith import _affine as aa
-from ..arith import _tape
-from ..arith._interval import Interval
+from ..arith import Interval, _tape, aa
 from ._field import enclosure, extended, ray_boxes
-from .program import _eval
+from ._grid import values_key
+from ._memo import BoundedCache
+from ._progress import Progress
+from .program import _eval  # private name of program.py, to be renamed by its owner
 
 N_PIECES = 32
 PIECE = 2.0**-6   # of the domain's diagonal
@@ -35,36 +37,33 @@ COST_RATIO = 2.0  # affine / interval evaluation cost per piece
 TAPE_COST_RATIO = 8.0
 
 
-_CHOICES: dict = {}  # (f, rounding, box) -> (arithmetic, report): measure once
+# choices by (f, rounding, box): the choice is a property of the function on its box,
+# so scenes with other params or w (a slider, `replace`) reuse it, as `replace` keeps it
+_CHOICES = BoundedCache("arithmetic choices", 32)
 
 
 def choose_arithmetic(f, g, lo, hi, w, params, rounding: str, tape=None
                       ) -> tuple[str, str]:
-    """(arithmetic, report) for the field g (of the user's f) on the box [lo, hi]; for a
-    long program, `tape` (its instruction tape), measured on the tape evaluator.
-    Measured once per f, rounding and box (the choice is a property of the function:
-    later scenes with other params or w reuse it, under jit too). Traced inputs (a scene
-    built under jit) cannot be measured: unless this f was measured before they get
-    "affine", which converges on every f jaxiso extends ("interval" for a long program,
-    the tape path's first arithmetic), and the report says so."""
-    key = None
-    if concrete(lo) is not None and concrete(hi) is not None:
-        key = (f, rounding, tuple(np.asarray(lo).tolist()), tuple(np.asarray(hi).tolist()))
-        try:
-            if key in _CHOICES:  # also under a trace: what this f got when measured
-                return _CHOICES[key]
-        except TypeError:  # an unhashable f: measure every time
-            key = None
+    """(arithmetic, report) for the field g (of the user's f) on the box [lo, hi] at w
+    and params; for a long program, `tape` (its instruction tape), measured on the tape
+    evaluator; measured once per f, rounding and box (`_CHOICES`, emptied by
+    `jaxiso.clear_caches`). Traced inputs (a scene prepared under jit) are neither
+    measured nor looked up: they get "affine", which converges on every f jaxiso
+    extends ("interval" for a long program, the tape path's first arithmetic), and the
+    report says so (prepare the scene outside the trace, `ImplicitSurface.prepared`)."""
     leaves = [lo, hi, w] + jax.tree_util.tree_leaves(params)
     if any(concrete(x) is None for x in leaves):
         pick = "affine" if tape is None else "interval"
-        return pick, f"auto: {pick} (built under a trace: nothing measured)"
-    if tape is None:
-        choice = _measure(g, lo, hi, w, params, rounding)
-    else:
-        choice = _measure_tape(tape, lo, hi, [w, *jax.tree_util.tree_leaves(params)])
-    if key is not None:
-        _CHOICES[key] = choice
+        return pick, f"auto: {pick} (prepared under a trace: nothing measured)"
+    progress = Progress()
+
+    def measure():
+        if tape is None:
+            return _measure(g, lo, hi, w, params, rounding)
+        return _measure_tape(tape, lo, hi, [w, *jax.tree_util.tree_leaves(params)])
+
+    choice = _CHOICES.get((f, rounding, values_key(lo, hi)), measure)
+    progress.done(choice[1])
     return choice
 
 

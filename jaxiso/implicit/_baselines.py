@@ -1,7 +1,7 @@
 """Comparison baselines for the seed's interval ray casting (Sec. 6.6.4, Table 6.2).
 
 Three ray-segment root finders with the same calling convention as the interval methods
-in `_scene` (a ray segment ``p + D s``, s in [0, 1], one per packet lane):
+(`_methods`) (a ray segment ``p + D s``, s in [0, 1], one per packet lane):
 
 * ``"mitchell"``: Mitchell's (1990) interval root *isolation* followed by point root
   refinement, the method the seed compares t-/K-bisection against (Table 6.2). Pieces
@@ -23,8 +23,8 @@ in `_scene` (a ray segment ``p + D s``, s in [0, 1], one per packet lane):
   where |f| shrinks like the distance squared, and an underestimated bound steps through
   thin features.
 
-`run` is the entry point used by `ImplicitSurface.intersect_packet`. Every method is
-jit-able: a per-ray ``lax.while_loop`` with a static iteration bound, vmapped over the
+The method registry (`_methods.METHODS`) calls them with the scene's options. Every
+method is jit-able: a per-ray ``lax.while_loop`` with a static iteration bound, vmapped over the
 packet, in float32.
 """
 
@@ -41,56 +41,11 @@ from ..arith import Affine, aa, extend
 from . import _bisect
 from ._field import contains_any, enclosure, extended, on_points, ray_boxes
 
-__all__ = ["run", "mitchell", "sampling", "sphere", "BASELINES"]
-
-BASELINES = ("mitchell", "sampling", "sphere")
+__all__ = ["mitchell", "sampling", "sphere"]
 
 DEFAULT_SAMPLES = 64
 DEFAULT_SPHERE_STEPS = 256
 DEFAULT_REFINE_STEPS = 2 * _bisect.MAX_DEPTH
-
-_OPTIONS = {
-    "mitchell": ("refine_steps",),
-    "sampling": ("samples", "refine_steps"),
-    "sphere": ("lipschitz",),
-}
-
-
-def run(method, g, scene, p, D, inside, eps, arithmetic, rounding, max_steps,
-        **method_options) -> _bisect.Result:
-    """First root of ``g(p + D s) = iso`` (any of scene.isovalues) for s in [0, 1].
-
-    Args:
-      method: "mitchell", "sampling" or "sphere".
-      g: ``g(x, y, z, w, params)``, the point field.
-      scene: provides ``w``, ``params`` and ``isovalues`` [I].
-      p, D: [P, 3] segment start and segment vector.
-      inside: [P] bool, the ray meets the domain box.
-      eps: world-space precision (float32 scalar).
-      arithmetic, rounding: inclusion arithmetic of "mitchell" (ignored by the others).
-      max_steps: static loop bound ("mitchell": isolation steps, "sphere": marching
-        steps; None for the default; "sampling" ignores it).
-      method_options: see the method functions.
-    Returns `_bisect.Result` ([P] each): s in [0, 1] (inf on a miss), hit, steps.
-    """
-    if method not in _OPTIONS:
-        raise ValueError(f"unknown baseline method {method!r}; expected one of "
-                         f"{', '.join(BASELINES)}")
-    unknown = sorted(set(method_options) - set(_OPTIONS[method]))
-    if unknown:
-        allowed = ", ".join(_OPTIONS[method]) or "none"
-        raise TypeError(f"method={method!r} got unknown option(s) {', '.join(unknown)}; "
-                        f"it accepts: {allowed}")
-    eps = jnp.asarray(eps, jnp.float32)
-    p = jnp.asarray(p, jnp.float32)
-    D = jnp.asarray(D, jnp.float32)
-    if method == "mitchell":
-        return mitchell(g, scene, p, D, inside, eps, arithmetic, rounding, max_steps,
-                        **method_options)
-    if method == "sampling":
-        return sampling(g, scene, p, D, inside, eps, **method_options)
-    return sphere(g, scene, p, D, inside, eps, max_steps, **method_options)
-
 
 # ------------------------------------------------------------------------- helpers
 

@@ -16,6 +16,7 @@ of the dominant axis K in lockstep (Sec. 6.4.3): one shared (k, d) and per-ray m
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import typing
 
@@ -474,3 +475,92 @@ def _settle_width(lanes: int) -> int:
     refill of 4 steps usually needs one chunk; a loose enclosure near the surface (bunny)
     fails pieces by the thousand, and more chunks run."""
     return min(lanes, max(32, lanes // 8))
+
+
+# ------------------------------------------------------------- the packet driver
+
+@dataclasses.dataclass(frozen=True)
+class Bisection:
+    """How `run_bisection` drives a packet (the scene's options, resolved).
+
+    method: "t-bisection" or "k-bisection".
+    eps: world-space length of the final piece (traced scalar).
+    max_steps: static iteration bound (None: enough for eps 2^-22, see `default_steps`).
+    lanes: None (packets) or the persistent lanes of t-bisection.
+    verify: None or ``verify(p, D, s0, s1)`` (`_field.root_check`).
+    heavy: a costly function (a network) on lanes: walks start at the depth
+      `start_depth` measures (on the catalogue at 512^2 that gained nothing clear and
+      cost 0.4-1.4 s of compile), and the narrowest lane phase is 64 wide, not 32 (every
+      phase compiles the walk again: on the networks at 128^2 the 32-lane phase cost
+      1.3-1.4 s of first call and saved 1-2% of the run).
+    empty: None or (ahead, aux): stretches of the rays that hold no root, which
+      t-bisection's walks leap (`t_bisect_lanes`; K-bisection's shared pieces do not).
+    verify_levels: t-bisection's walks with verify accept pieces that many levels above
+      d_max and take the first verified of their pieces at d_max (`t_bisect`).
+    """
+
+    method: str
+    eps: object
+    max_steps: int | None = None
+    lanes: int | None = None
+    verify: object = None
+    heavy: bool = False
+    empty: tuple | None = None
+    verify_levels: int = 0
+
+    def steps(self) -> int:
+        """max_steps, or the default: enough for eps 2^-22 with IA on the Barth decic
+        (1920 was not); a K-bisection packet visits the union of its rays' pieces."""
+        if self.max_steps is not None:
+            return self.max_steps
+        return 256 * MAX_DEPTH * (8 if self.method == "k-bisection" else 1)
+
+
+def run_bisection(test, p, D, inside, how: Bisection) -> Result:
+    """t- or K-bisection of a packet of ray segments ``p + s D`` (p, D: [P, 3], inside:
+    [P]) with a box test ``test(p, D, s0, s1) -> BoxTest``. Returns Result [P]."""
+    length = jnp.linalg.norm(D, axis=-1)
+    d_max = depth_for(length, how.eps)
+    max_steps = how.steps()
+    ahead, aux = (None, None) if how.empty is None else how.empty
+    if how.method == "t-bisection" and how.lanes is not None:
+        d_start = start_depth(test, p, D, d_max, inside) if how.heavy else 0
+        return t_bisect_lanes(test, p, D, d_max, inside, how.lanes, max_steps, how.verify,
+                              d_start, min_width=64 if how.heavy else 32, ahead=ahead,
+                              aux=aux, verify_levels=how.verify_levels)
+    if how.method == "t-bisection":
+        return t_bisect_packet(test, p, D, d_max, inside, max_steps, how.verify,
+                               how.empty, how.verify_levels)
+    if how.method == "k-bisection":
+        return k_bisect_packet(test, p, D, d_max, inside, max_steps, how.verify)
+    raise ValueError(f"unknown bisection method {how.method!r}")
+
+
+def t_bisect_packet(test, p, D, d_max, inside, max_steps, verify, empty=None,
+                    verify_levels=0) -> Result:
+    """Per-ray t-bisection under vmap (one batched loop per packet)."""
+    ahead, aux = (None, None) if empty is None else empty
+
+    def one(p, D, d_max, active, aux):
+        check = None if verify is None else functools.partial(verify, p, D)
+        leap = None if ahead is None else functools.partial(ahead, aux)
+        return t_bisect(functools.partial(test, p, D), d_max, active, max_steps, check,
+                        leap, verify_levels)
+    return jax.vmap(one)(p, D, d_max, inside, aux)
+
+
+def k_bisect_packet(test, p, D, d_max, inside, max_steps, verify) -> Result:
+    """K-bisection for the rays that march coherently along the packet's dominant axis;
+    the rest (opposite or too oblique K direction) fall back to t-bisection."""
+    length = jnp.linalg.norm(D, axis=-1)
+    mean = jnp.sum(jnp.where(inside[:, None], D, 0.0), axis=0)
+    axis = jnp.argmax(jnp.abs(mean))
+    dk = jnp.take(D, axis, axis=1)
+    sign = jnp.sign(jnp.take(mean, axis))
+    coherent = inside & (jnp.sign(dk) == sign) & (jnp.abs(dk) >= 0.25 * length)
+    k_enter = jnp.take(p, axis, axis=1)
+    check = None if verify is None else functools.partial(verify, p, D)
+    res_k = k_bisect(lambda s0, s1: test(p, D, s0, s1), k_enter, k_enter + dk,
+                     d_max, coherent, max_steps, check)
+    res_t = t_bisect_packet(test, p, D, d_max, inside & ~coherent, max_steps, verify)
+    return jax.tree_util.tree_map(lambda a, b: jnp.where(coherent, a, b), res_k, res_t)

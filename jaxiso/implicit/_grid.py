@@ -18,8 +18,6 @@ from __future__ import annotations
 
 import hashlib
 import math
-import sys
-import time
 import typing
 
 import jax
@@ -28,6 +26,8 @@ import numpy as np
 
 from .._core import pytree_dataclass
 from ..arith import Interval, aa, extend
+from ._memo import BoundedCache
+from ._progress import Progress
 
 FIRST_LEVEL = 16
 RESOLUTION = 64
@@ -36,7 +36,11 @@ FRESH_PER_OP = 8
 MAX_BOXES = 2**17  # cells tested per level at most (bunny at level 64: ~100k)
 BATCH = 4096
 SPACING = 0.9  # samples along a ray per cell edge, at least 1 / SPACING (see `segment_span`)
-PROGRESS_AFTER_S = 2.0
+# refining stops when more than this share of a level's cells may hold an isovalue, or
+# once a build has taken BUDGET_S (an elu network written with `where` kept 96% of 32^3
+# cells possible and took 2 minutes to build: issue 28)
+MOSTLY_POSSIBLE = 0.5
+BUDGET_S = 30.0
 PAD_ULPS = 8.0  # the cells' enclosures are widened by this many ulps of their magnitude
 
 
@@ -62,12 +66,17 @@ class SignGrid:
         return tuple(np.shape(self.low))
 
 
-_BOUNDS: dict = {}  # key -> compiled bounds (a rebuild after replace(params=) reuses it)
+_BOUNDS = BoundedCache("compiled sign grid enclosures", 4)  # each holds compiled code
 
 
 def _box_bounds(g, rounding, key=None):
-    if key is not None and (key, rounding) in _BOUNDS:
-        return _BOUNDS[(key, rounding)]
+    """The jitted enclosure of g on boxes; `key` (naming g) reuses it for a rebuild
+    (replace(params=...))."""
+    return _BOUNDS.get(None if key is None else (key, rounding),
+                       lambda: _compile_bounds(g, rounding))
+
+
+def _compile_bounds(g, rounding):
     F = extend(g, "affine", rounding, n_symbols=3, fresh_symbols=FRESH_SYMBOLS,
                fresh_per_op=FRESH_PER_OP)
 
@@ -79,10 +88,6 @@ def _box_bounds(g, rounding, key=None):
         bad = ~r.defined | jnp.isnan(r.lo) | jnp.isnan(r.hi)
         return jnp.where(bad, -jnp.inf, r.lo), jnp.where(bad, jnp.inf, r.hi)
 
-    if key is not None:
-        while len(_BOUNDS) >= 4:  # each holds compiled programs (memory maps)
-            _BOUNDS.pop(next(iter(_BOUNDS)))
-        _BOUNDS[(key, rounding)] = bounds
     return bounds
 
 
@@ -92,38 +97,32 @@ def _possible(low, high, isovalues):
 
 
 def build_sign_grid(g, lo, hi, w, params, isovalues, rounding="fast",
-                    resolution=RESOLUTION, max_boxes=MAX_BOXES, key=None):
+                    resolution=RESOLUTION, max_boxes=MAX_BOXES, key=None,
+                    budget_s=BUDGET_S):
     """The sign grid of ``g(x, y, z, w, params)`` on the box [lo, hi] (concrete values);
     `key` (hashable, naming g) keeps the compiled enclosure for the next build.
 
-    Returns (SignGrid, report): `resolution`^3 cells holding the enclosures of the
-    finest level reached (`resolution`, or coarser when the next level would test more
-    than `max_boxes` cells) and a line saying what was built and how long it took."""
-    start = time.perf_counter()
-    lo64 = np.asarray(lo, np.float64)
-    hi64 = np.asarray(hi, np.float64)
-    iso = np.asarray(isovalues, np.float32)
+    Refined level by level from FIRST_LEVEL^3 up to `resolution`^3; refining stops
+    early when the next level would test more than `max_boxes` cells, when more than
+    MOSTLY_POSSIBLE of the cells may hold an isovalue (a finer grid would prune little)
+    or when the build has taken `budget_s` seconds. Returns (SignGrid, report):
+    `resolution`^3 cells holding the finest level's enclosures, and a line saying what
+    was built, how long it took and why it stopped."""
+    progress = Progress()
     bounds = _box_bounds(g, rounding, key)
-    n = FIRST_LEVEL
+    box = (np.asarray(lo, np.float64), np.asarray(hi, np.float64))
+    iso = np.asarray(isovalues, np.float32)
+    n, tested = FIRST_LEVEL, 0
     low = np.full((1, 1, 1), -np.inf, np.float32)
     high = np.full((1, 1, 1), np.inf, np.float32)
     todo = np.ones((n,) * 3, bool)
-    tested = 0
     while True:
-        low = _upsample(low, n)
-        high = _upsample(high, n)
-        cells = np.argwhere(todo)
-        edge = (hi64 - lo64) / n
-        a = (lo64 + cells * edge).astype(np.float32)
-        b = (lo64 + (cells + 1) * edge).astype(np.float32)
-        cl, ch = _evaluate(bounds, a, b, w, params)
-        low[tuple(cells.T)] = cl
-        high[tuple(cells.T)] = ch
-        tested += len(cells)
-        _progress(start, f"sign grid: {n}^3 level, {tested:,} cells tested")
+        low, high = _refine(bounds, box, n, todo, low, high, w, params)
+        tested += int(np.count_nonzero(todo))
+        progress.say(f"sign grid: {n}^3 level, {tested:,} cells tested")
         possible = _possible(low, high, iso) | ~np.isfinite(low) | ~np.isfinite(high)
-        children = 8 * int(np.count_nonzero(possible))
-        if 2 * n > resolution or children > max_boxes:
+        why = _stop(n, resolution, possible, max_boxes, progress.elapsed, budget_s)
+        if why is not None:
             break
         n *= 2
         todo = np.repeat(np.repeat(np.repeat(possible, 2, 0), 2, 1), 2, 2)
@@ -134,16 +133,35 @@ def build_sign_grid(g, lo, hi, w, params, isovalues, rounding="fast",
     pad = PAD_ULPS * np.spacing(np.maximum(np.abs(low), np.abs(high)).astype(np.float32))
     grid = SignGrid(jnp.asarray(low - pad), jnp.asarray(high + pad))
     report = (f"sign grid {n}^3: {share:.1%} of the cells may hold the isovalues "
-              f"({tested:,} cells tested, {time.perf_counter() - start:.1f} s)")
-    _progress(start, report, end=True)
+              f"({tested:,} cells tested, {progress.elapsed:.1f} s{why})")
+    progress.done(report)
     return grid, report
 
 
-def _progress(start, message, end=False):
-    """One progress line on stderr once a build has taken PROGRESS_AFTER_S (networks'
-    grids take 5-15 s on a 2-core CPU)."""
-    if time.perf_counter() - start >= PROGRESS_AFTER_S:
-        print(f"\r{message:<78}", end="\n" if end else "", file=sys.stderr, flush=True)
+def _refine(bounds, box, n, todo, low, high, w, params):
+    """The enclosures (low, high) upsampled to n^3 cells, those marked in `todo`
+    [n, n, n] evaluated on their own boxes."""
+    low, high = _upsample(low, n), _upsample(high, n)
+    cells = np.argwhere(todo)
+    edge = (box[1] - box[0]) / n
+    a = (box[0] + cells * edge).astype(np.float32)
+    b = (box[0] + (cells + 1) * edge).astype(np.float32)
+    low[tuple(cells.T)], high[tuple(cells.T)] = _evaluate(bounds, a, b, w, params)
+    return low, high
+
+
+def _stop(n, resolution, possible, max_boxes, elapsed, budget_s):
+    """Why refining stops after the level of n^3 cells (a report suffix; "" at full
+    resolution), or None to go on."""
+    if 2 * n > resolution:
+        return ""
+    if 8 * int(np.count_nonzero(possible)) > max_boxes:
+        return f"; stopped: {max_boxes:,} cells per level at most"
+    if np.mean(possible) > MOSTLY_POSSIBLE:
+        return f"; stopped: most cells possible at {n}^3, a finer grid prunes little"
+    if elapsed >= budget_s:
+        return f"; stopped: time budget {budget_s:.0f} s"
+    return None
 
 
 def _upsample(a, n):

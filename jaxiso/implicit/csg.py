@@ -23,16 +23,12 @@ import jax
 import jax.numpy as jnp
 
 from .._core import Hits, Plan, pytree_dataclass, static_field
-from ._bisect import BoxTest as _BoxTest
+from ._bisect import Bisection, BoxTest, run_bisection
 from ._field import as_field, enclosure, extended, on_points, ray_boxes, ray_segments
-from ._scene import (
-    DEFAULT_EPS,
-    _check_lanes,
-    _ImplicitOptions,
-    _plan,
-    finish_hits,
-    run_bisection,
-)
+from ._hits import finish_hits, nearest_drawn
+from ._methods import BISECTIONS, METHODS
+from ._options import DEFAULT_EPS, ImplicitOptions
+from ._policy import packet_plan
 
 __all__ = ["Solid", "union", "intersection", "difference", "complement", "CSG"]
 
@@ -109,7 +105,7 @@ def _eval3(expr, leaves, states):
 
 
 @pytree_dataclass
-class CSG(_ImplicitOptions):
+class CSG(ImplicitOptions):
     """Scene: the boundary of a CSG expression of solids inside the box [lo, hi].
 
     Fields mirror `ImplicitSurface` (params, w, eps are traced and shared by all leaves;
@@ -129,12 +125,13 @@ class CSG(_ImplicitOptions):
     normals: float | None = static_field(None)
     max_steps: int | None = static_field(None)
 
-    _methods = ("t-bisection", "k-bisection")
+    methods = BISECTIONS
 
     def preferred_plan(self, n_rays: int, backend: str) -> Plan:
         """Packets only: lanes did not pay for CSG (sesc.csg at 256^2 ran 0.80 s on lanes
         vs 0.74 s in tiles, and compiled 31 s vs 8 s)."""
-        return Plan(tile=_plan(self.method, self.arithmetic, n_rays, backend).tile)
+        lanes_form = METHODS[self.method].lanes
+        return Plan(tile=packet_plan(lanes_form, self.arithmetic, n_rays, backend).tile)
 
     def __post_init__(self):
         self._validate()
@@ -152,60 +149,78 @@ class CSG(_ImplicitOptions):
         return _leaves(self.expr, [])
 
     @property
+    def drawn(self) -> jax.Array:
+        """[K] bool: which leaves are drawn."""
+        return jnp.array([s.draw for s in self.leaves])
+
+    @property
+    def leaf_values(self):
+        """``v(x, y, z, w, params)``: the leaves' values [..., K] at points."""
+        fields = [as_field(s.f, self.has_params) for s in self.leaves]
+
+        def v(x, y, z, w, params):
+            return jnp.stack([fi(x, y, z, w, params) for fi in fields], axis=-1)
+        return v
+
+    @property
     def field(self):
         """Point function: the drawn leaf nearest to its zero set (at a hit, the part
         hit); batches go through `on_points`."""
-        fields = [as_field(s.f, self.has_params) for s in self.leaves]
-        drawn = jnp.array([s.draw for s in self.leaves])
+        values, drawn = self.leaf_values, self.drawn
 
         def g(x, y, z, w, params):
-            vals = jnp.stack([fi(x, y, z, w, params) for fi in fields], axis=-1)
-            score = jnp.where(drawn, jnp.abs(vals), jnp.inf)
-            i = jnp.argmin(score, axis=-1)
+            vals = values(x, y, z, w, params)
+            i = nearest_drawn(vals, drawn)
             return jnp.take_along_axis(vals, i[..., None], axis=-1)[..., 0]
         return g
 
     def intersect_packet(self, rays, t_min, t_max, *, lanes: int | None = None) -> Hits:
         """First hits of one packet of rays [P] (the scene protocol, `jaxiso.Scene`)."""
-        _check_lanes(self.method, lanes)
-        method, arithmetic, eps = self.method, self.arithmetic, self.eps
+        self.check_lanes(lanes)
         scene = jax.lax.stop_gradient(self)
-        leaves = self.leaves
-        fields = [as_field(s.f, self.has_params) for s in leaves]
-        Fs = [extended(fi, arithmetic, self.rounding) for fi in fields]
         t0, t1, inside, p, D = ray_segments(rays, scene.lo, scene.hi, t_min, t_max)
-        o = jax.lax.stop_gradient(rays.origin)
-        d = jax.lax.stop_gradient(rays.direction)
-
-        def test(p, D, s0, s1):
-            boxes = ray_boxes(p, D, s0, s1, arithmetic)
-            rs = [enclosure(F, boxes, scene.w, scene.params, arithmetic) for F in Fs]
-            states = [(r.lo < 0, r.hi > 0) for r in rs]  # possibly inside, outside
-            possible = jnp.zeros(jnp.shape(s0), bool)
-            finite = jnp.ones(jnp.shape(s0), bool)
-            for i, (leaf, r) in enumerate(zip(leaves, rs)):
-                if not leaf.draw:
-                    continue
-                on = (r.lo <= 0) & (r.hi >= 0)
-                true = list(states)
-                false = list(states)
-                true[i] = (jnp.ones_like(on), jnp.zeros_like(on))
-                false[i] = (jnp.zeros_like(on), jnp.ones_like(on))
-                at, af = _eval3(self.expr, leaves, true)
-                bt, bf = _eval3(self.expr, leaves, false)
-                cand = on & ((at & bf) | (af & bt))
-                possible = possible | cand
-                finite = finite & (~cand | jnp.isfinite(r.hi - r.lo))
-            return _BoxTest(possible, finite, jnp.zeros_like(possible))
-
-        res = run_bisection(method, test, p, D, inside, eps, self.max_steps, lanes)
+        how = Bisection(self.method, self.eps, self.max_steps, lanes)
+        res = run_bisection(_box_test(scene), p, D, inside, how)
         t_raw = jnp.where(res.hit, t0 + res.s * (t1 - t0), jnp.inf)
         # which part: the drawn leaf nearest its zero set at the hit point
-        pts = jax.lax.stop_gradient(o + jnp.where(res.hit, t_raw, 0.0)[:, None] * d)
-        vals = jnp.stack([on_points(fi)(pts[:, 0], pts[:, 1], pts[:, 2], scene.w,
-                                        scene.params) for fi in fields], axis=-1)
-        drawn = jnp.array([s.draw for s in leaves])
-        which = jnp.argmin(jnp.where(drawn, jnp.abs(vals), jnp.inf), axis=-1)
+        o, d = jax.lax.stop_gradient((rays.origin, rays.direction))
+        pts = o + jnp.where(res.hit, t_raw, 0.0)[:, None] * d
+        vals = on_points(scene.leaf_values)(pts[:, 0], pts[:, 1], pts[:, 2], scene.w,
+                                            scene.params)
+        which = nearest_drawn(vals, scene.drawn).astype(jnp.int32)
         return finish_hits(self.field, self, rays, t_raw, res.hit, res.steps, self.normals,
-                           which=which.astype(jnp.int32))
+                           which=which)
 
+
+def _box_test(scene):
+    """``test(p, D, s0, s1) -> BoxTest``: a piece may hold the boundary of the CSG
+    expression where some drawn leaf's enclosure holds 0 and flipping that leaf may
+    change the expression (three-valued logic, see the module docstring)."""
+    leaves = scene.leaves
+    Fs = [extended(as_field(s.f, scene.has_params), scene.arithmetic, scene.rounding)
+          for s in leaves]
+
+    def test(p, D, s0, s1):
+        boxes = ray_boxes(p, D, s0, s1, scene.arithmetic)
+        rs = [enclosure(F, boxes, scene.w, scene.params, scene.arithmetic) for F in Fs]
+        states = [(r.lo < 0, r.hi > 0) for r in rs]  # possibly inside, outside
+        possible = jnp.zeros(jnp.shape(s0), bool)
+        finite = jnp.ones(jnp.shape(s0), bool)
+        for i, (leaf, r) in enumerate(zip(leaves, rs)):
+            if not leaf.draw:
+                continue
+            cand = ((r.lo <= 0) & (r.hi >= 0)) & _flip_matters(scene.expr, leaves, states, i)
+            possible = possible | cand
+            finite = finite & (~cand | jnp.isfinite(r.hi - r.lo))
+        return BoxTest(possible, finite, jnp.zeros_like(possible))
+    return test
+
+
+def _flip_matters(expr, leaves, states, i):
+    """Whether the expression may differ with leaf i forced inside or outside."""
+    yes, no = jnp.ones_like(states[i][0]), jnp.zeros_like(states[i][0])
+    true, false = list(states), list(states)
+    true[i], false[i] = (yes, no), (no, yes)
+    at, af = _eval3(expr, leaves, true)
+    bt, bf = _eval3(expr, leaves, false)
+    return (at & bf) | (af & bt)

@@ -19,23 +19,38 @@ import numpy as np
 
 from .._core import Hits, Plan, Rays, Scene, miss_like
 
-__all__ = ["Plan", "plan_for", "intersect", "to_tiles", "from_tiles", "morton_order",
-           "to_zorder", "from_zorder"]
+__all__ = ["Plan", "plan_for", "prepare", "intersect", "to_tiles", "from_tiles",
+           "morton_order", "to_zorder", "from_zorder", "check_scene"]
 
 
 def plan_for(scene, n_rays: int, backend: str | None = None) -> Plan:
     """The plan `intersect` and `render` use for a batch of n_rays rays of `scene` on
-    `backend` (default: jax's default backend)."""
-    _check_scene(scene)
-    backend = jax.default_backend() if backend is None else backend
-    plan = scene.preferred_plan(int(n_rays), backend)
+    `backend` (default: jax's default backend); prepares the scene to know it."""
+    return prepare(scene, n_rays, backend=backend)[1]
+
+
+def prepare(scene, n_rays: int, plan: Plan | None = None, backend: str | None = None):
+    """(scene, plan) ready to trace n_rays rays: the scene prepared (``scene.prepared()``
+    where the scene kind has expensive preparation, e.g. `ImplicitSurface`; done once,
+    the prepared scene returns itself) and `plan`, by default the scene's preferred plan
+    on `backend`, checked. The one preparation step of `intersect` and `render`."""
+    check_scene(scene)
+    prepared = getattr(scene, "prepared", None)
+    scene = scene if prepared is None else prepared()
+    if plan is None:
+        backend = jax.default_backend() if backend is None else backend
+        plan = scene.preferred_plan(int(n_rays), backend)
+        if not isinstance(plan, Plan):
+            raise TypeError(f"{type(scene).__name__}.preferred_plan returned "
+                            f"{type(plan).__name__}, not a Plan")
     if not isinstance(plan, Plan):
-        raise TypeError(f"{type(scene).__name__}.preferred_plan returned "
-                        f"{type(plan).__name__}, not a Plan")
-    return plan
+        raise TypeError(f"plan must be a jaxiso.Plan, got {type(plan).__name__}")
+    check_plan(plan, scene)
+    return scene, plan
 
 
-def _check_scene(scene):
+def check_scene(scene) -> None:
+    """TypeError unless `scene` implements the protocol (`jaxiso.Scene`)."""
     if not isinstance(scene, Scene):
         raise TypeError(f"expected a scene (ImplicitSurface, CSG, VolumeIsosurface, "
                         f"TetIsosurface or any jaxiso.Scene), got {type(scene).__name__}")
@@ -53,19 +68,16 @@ def intersect(scene, rays: Rays, *, t_min=0.0, t_max=jnp.inf, plan: Plan | None 
     static field does), jit/vmap/grad-able; `t` is differentiable (implicit function
     theorem) with respect to the scene's traced fields and the rays.
     """
-    _check_scene(scene)
+    check_scene(scene)
     if not isinstance(rays, Rays):
         raise TypeError(f"rays must be jaxiso.Rays, got {type(rays).__name__}")
     shape = rays.shape
     n = math.prod(shape)
     if n == 0:
         return miss_like(jnp.zeros(shape))
-    plan = plan_for(scene, n) if plan is None else plan
-    if not isinstance(plan, Plan):
-        raise TypeError(f"plan must be a jaxiso.Plan, got {type(plan).__name__}")
+    scene, plan = prepare(scene, n, plan)
     t_min = jnp.broadcast_to(jnp.asarray(t_min, jnp.float32), shape)
     t_max = jnp.broadcast_to(jnp.asarray(t_max, jnp.float32), shape)
-    check_plan(plan, scene)
     if plan.tape:
         return intersect_traced(scene, rays, t_min, t_max, plan)
     return _intersect(scene, rays, t_min, t_max, plan)
@@ -188,3 +200,6 @@ def from_tiles(x, tile: int, height: int, width: int):
     x = jnp.moveaxis(x, 1, 2)
     x = x.reshape((th * tile, tw * tile) + x.shape[4:])
     return x[:height, :width]
+
+
+_check_scene = check_scene  # old name, still imported by render/_distributed.py (its owner renames)

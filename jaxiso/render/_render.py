@@ -22,12 +22,11 @@ from .._core import Plan, Rays, concrete, facing, pytree_dataclass
 from ._distributed import as_mesh, mesh_of, shard_rays, to_global, to_host
 from ._image import Image
 from ._plan import (
-    _check_scene,
-    check_plan,
+    check_scene,
     from_tiles,
     from_zorder,
     intersect_traced,
-    plan_for,
+    prepare,
     to_tiles,
     to_zorder,
 )
@@ -139,7 +138,7 @@ def render(scene, camera: Camera, *, shading: Shading | None = None,
       Float [H, W, 3] colours in [0, 1]: an `Image` (numpy; shows inline in Jupyter)
       when called eagerly, a jax array under jit/grad.
     """
-    _check_scene(scene)
+    check_scene(scene)
     if not isinstance(camera, Camera):
         raise TypeError(f"camera must be a jaxiso.Camera, got {type(camera).__name__}")
     shading = Shading() if shading is None else shading
@@ -147,10 +146,7 @@ def render(scene, camera: Camera, *, shading: Shading | None = None,
     mesh = None if devices is None else as_mesh(devices)
     home = mesh_of(scene, devices)  # where inputs live: a mesh over processes, or None
     n_dev = 1 if mesh is None else mesh.devices.size
-    plan = plan_for(scene, -(-camera.width * camera.height // n_dev)) if plan is None else plan
-    if not isinstance(plan, Plan):
-        raise TypeError(f"plan must be a jaxiso.Plan, got {type(plan).__name__}")
-    check_plan(plan, scene)
+    scene, plan = prepare(scene, -(-camera.width * camera.height // n_dev), plan)
     if plan.tape:
         if mesh is not None:
             warnings.warn("a tape plan (long program) renders on the default device only",
