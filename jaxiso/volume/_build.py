@@ -33,8 +33,6 @@ import warnings
 
 import numpy as np
 
-from ._octree import OctreeVolume
-
 __all__ = ["build_octree", "checked_geometry", "validated"]
 
 _KEPT_DTYPES = tuple(np.dtype(t) for t in ("uint8", "int8", "uint16", "int16", "float16",
@@ -354,8 +352,10 @@ def validated(data, what: str = "octree volumes") -> np.ndarray:
 
 
 def build_octree(data, *, spacing=1.0, origin=0.0, variance=0.0, iso_range=None,
-                 multires=True, progress=None) -> OctreeVolume:
-    """Build an `OctreeVolume` from a dense array `data` [nx, ny, nz] (x = first index).
+                 multires=True, progress=None) -> dict:
+    """The fields of an `OctreeVolume` (numpy arrays and static values; the structure
+    itself is made by `OctreeVolume.from_array`) from a dense array `data` [nx, ny, nz]
+    (x = first index).
 
     spacing, origin: scalar or 3-vector (spacing > 0). variance: consolidation threshold
     (0 = lossless; see the module docstring for the error bound). iso_range (a, b): clamp
@@ -430,22 +430,9 @@ def build_octree(data, *, spacing=1.0, origin=0.0, variance=0.0, iso_range=None,
                               centre, multires)
     report(1.0, f"done: {len(records['child_start'])} records, {len(caps)} caps")
 
-    import jax.numpy as jnp  # the build itself is numpy; only the result lives on device
-
-    return OctreeVolume(
-        child_start=jnp.asarray(records["child_start"]),
-        child_offset=jnp.asarray(records["child_offset"]),
-        child_value=jnp.asarray(records["child_value"]),
-        child_min=jnp.asarray(records["child_min"]),
-        child_max=jnp.asarray(records["child_max"]),
-        caps=jnp.asarray(caps),
-        spacing=jnp.asarray(spacing_v),
-        origin=jnp.asarray(origin_v),
-        shape=tuple(int(s) for s in n),
-        depth=depth,
-        multires=bool(multires),
-        raw_itemsize=int(raw.dtype.itemsize),
-    )
+    return dict(records, caps=caps, spacing=spacing_v, origin=origin_v,
+                shape=tuple(int(s) for s in n), depth=depth, multires=bool(multires),
+                raw_itemsize=int(raw.dtype.itemsize))
 
 
 def _assemble(alive, leaf, stats, field, range_lo, range_hi, depth, dtype, centre, multires):

@@ -147,7 +147,7 @@ def ray_cubic(corners, p0, dl):
 
 # ----------------------------------------------------------------------- root finding
 
-def _horner(a, x):
+def horner(a, x):
     """a[..., 0] + a[..., 1] x + a[..., 2] x^2 + a[..., 3] x^3 (x broadcast against a)."""
     return a[..., 0] + x * (a[..., 1] + x * (a[..., 2] + x * a[..., 3]))
 
@@ -172,7 +172,7 @@ def _quadratic_roots(a, b_half, c):
             jnp.where(real, _safe_divide(c, q), jnp.inf))
 
 
-def _normalise(coeffs, s1):
+def normalise(coeffs, s1):
     """Coefficients in sigma = s / s1 on [0, 1]: a_k = c_k s1^k (s1 = 0 keeps only c0)."""
     powers = jnp.stack([jnp.ones_like(s1), s1, s1 * s1, s1 * s1 * s1], axis=-1)
     return coeffs * powers
@@ -226,7 +226,7 @@ def _safeguarded_newton(coeffs, lo, hi, flo, fhi, iterations):
         return xn, usable
 
     for _ in range(iterations):   # static count: unrolled, fuses into one loop nest
-        fx = _horner(coeffs, x)
+        fx = horner(coeffs, x)
         dfx = _derivative(coeffs, x)
         on_lo_side = jnp.sign(fx) == jnp.sign(flo)
         lo = jnp.where(on_lo_side, x, lo)
@@ -245,7 +245,7 @@ def _neubauer_sigma(a, d0, iterations):
     coeffs = jnp.concatenate([d0[..., None], jnp.broadcast_to(a[..., 1:], d0.shape + (3,))],
                              axis=-1)
     # pieces [0, x1], [x1, x2], [x2, 1]; g(0) - iso is d0 exactly
-    f1, f2, f3 = _horner(coeffs, x1), _horner(coeffs, x2), _horner(coeffs, 1.0)
+    f1, f2, f3 = horner(coeffs, x1), horner(coeffs, x2), horner(coeffs, 1.0)
     first, second, third = _brackets(d0, f1), _brackets(f1, f2), _brackets(f2, f3)
     hit = first | second | third
     # the first bracketing piece, by selects (no gathers: they do not fuse on CPU)
@@ -370,7 +370,7 @@ def first_root(coeffs, iso, s1, *, method: str = "neubauer",
     s1 = jnp.broadcast_to(s1, shape)
     finite_inputs = (jnp.all(jnp.isfinite(coeffs), axis=-1) & jnp.isfinite(iso)
                      & jnp.isfinite(s1) & (s1 >= 0))
-    a = _normalise(jnp.where(jnp.isfinite(coeffs), coeffs, 0.0),
+    a = normalise(jnp.where(jnp.isfinite(coeffs), coeffs, 0.0),
                    jnp.where(jnp.isfinite(s1), s1, 0.0))
     # The isovalue shift is the only cancellation left: g(0) - iso, done once and exactly
     # as the caller's comparison would do it.

@@ -107,7 +107,7 @@ class OctreeCells:
         if not self.neighbor:
             return extra
         diff = jnp.bitwise_or.reduce(jnp.bitwise_xor(v, v_next), axis=-1)
-        common = self.volume.depth - 1 - _octree._highest_bit(diff.astype(jnp.int32))
+        common = self.volume.depth - 1 - _octree.highest_bit(diff.astype(jnp.int32))
         start = jnp.clip(common, 0, max(self.volume.depth - 2, 0))
         return dict(trace=extra["trace"], start=start.astype(jnp.int32))
 

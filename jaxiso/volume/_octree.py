@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._core import pytree_dataclass, static_field
+from ._build import build_octree
 
 __all__ = ["OctreeVolume", "lookup", "lookup_trace", "neighbor_lookup", "lookup_coarse",
            "cell_corners", "child_range", "CORNER_OFFSETS"]
@@ -67,11 +68,12 @@ class OctreeVolume:
     @classmethod
     def from_array(cls, data, *, spacing=1.0, origin=0.0, variance=0.0, iso_range=None,
                    multires=True, progress=None) -> OctreeVolume:
-        """Build from a 3-D array; see `jaxiso.volume._build.build_octree`."""
-        from ._build import build_octree  # the builder imports this module
-
-        return build_octree(data, spacing=spacing, origin=origin, variance=variance,
-                            iso_range=iso_range, multires=multires, progress=progress)
+        """Build from a 3-D array; see `jaxiso.volume._build.build_octree` (numpy; only
+        the result lives on device)."""
+        fields = build_octree(data, spacing=spacing, origin=origin, variance=variance,
+                              iso_range=iso_range, multires=multires, progress=progress)
+        arrays = {k: jnp.asarray(v) for k, v in fields.items() if isinstance(v, np.ndarray)}
+        return cls(**{**fields, **arrays})
 
     @property
     def dtype(self):
@@ -252,7 +254,7 @@ def lookup(vol: OctreeVolume, ijk):
     return lookup_trace(vol, ijk)[0]
 
 
-def _highest_bit(x):
+def highest_bit(x):
     """[...] int32 index of the highest set bit of x >= 0 (-1 for 0)."""
     return 31 - jax.lax.clz(x)
 
@@ -273,7 +275,7 @@ def neighbor_lookup(vol: OctreeVolume, trace, ijk, target_ijk):
     trace = jnp.asarray(trace, jnp.int32)
     diff = jnp.bitwise_or.reduce(ijk ^ target_ijk, axis=-1)
     # differing bits above the octree (targets outside its cube) resume from the root
-    common = jnp.clip(depth - 1 - _highest_bit(diff), 0, depth - 1)
+    common = jnp.clip(depth - 1 - highest_bit(diff), 0, depth - 1)
     levels = jnp.arange(depth, dtype=jnp.int32)
     usable = (levels <= common[..., None]) & (trace >= 0)
     start = jnp.max(jnp.where(usable, levels, 0), axis=-1)

@@ -34,7 +34,7 @@ from ._traverse import traverse, voxel_ray
 
 __all__ = ["VolumeIsosurface"]
 
-METHODS = ("neubauer", "analytic")
+METHODS = _cell.METHODS
 TRAVERSALS = ("restart", "neighbor")
 NORMALS = ("trilinear", "central")
 

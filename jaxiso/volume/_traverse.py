@@ -155,9 +155,9 @@ def _step(hierarchy, isovalues, method, n_cells, s):
         # between the last exit and this entry is a root at the entry, and a sign change
         # over this cell that the root finder missed is a root at its exit
         # (the root finder evaluates its ends its own way).
-        a = _cell._normalise(coeffs, s1)
+        a = _cell.normalise(coeffs, s1)
         entry = jnp.sign(coeffs[:, :1] - iso_rel)                        # [P, K]
-        exit_ = jnp.sign(_cell._horner(a, 1.0)[:, None] - iso_rel)
+        exit_ = jnp.sign(_cell.horner(a, 1.0)[:, None] - iso_rel)
         # (an end exactly at the isovalue is a root too: the closed rule)
         crack = (s["side"].astype(jnp.float32) * entry < 0) | (entry == 0)
         missed = ~found[:, None] & ((entry * exit_ < 0) | (exit_ == 0))
