@@ -118,7 +118,7 @@ def _traced(name, arithmetic):
             np.asarray(h.steps).ravel())
 
 
-# default max_steps of t-bisection (jaxiso.implicit._scene.run_bisection)
+# default max_steps of t-bisection (jaxiso.implicit._bisect.Bisection.steps)
 MAX_STEPS = 256 * 30
 
 

@@ -49,7 +49,7 @@ ALLOWED_LONG = {
     ("arith/_tape.py", "evaluate"), ("arith/_tape.py", "from_function"),
     ("implicit/_tape_rays.py", "intersect_rays"), ("implicit/_tape_rays.py", "_level"),
     ("implicit/program.py", "cast"), ("implicit/_field.py", "root_check"),
-    ("implicit/_baselines.py", "mitchell"), ("implicit/_bisect.py", "k_bisect"),
+    ("implicit/_baselines.py", "mitchell"),
     ("volume/_build.py", "build_octree"), ("volume/_build.py", "_assemble"),
     ("volume/_traverse.py", "_step"), ("tetra/_isopoly.py", "isopolygon_hits"),
 }

@@ -271,21 +271,9 @@ def k_bisect(test, k_enter, k_exit, d_max, active, max_steps: int, verify=None) 
         a piece only where it holds; elsewhere it goes on with the packet.
     Returns per-ray `Result` ([P]).
     """
-    big = jnp.float32(3e38)
-    lo = jnp.minimum(k_enter, k_exit)
-    hi = jnp.maximum(k_enter, k_exit)
-    forward = jnp.sum(jnp.where(active, k_exit - k_enter, 0.0)) >= 0.0
-    K0 = jnp.where(forward, jnp.min(jnp.where(active, lo, big)),
-                   jnp.max(jnp.where(active, hi, -big)))
-    K1 = jnp.where(forward, jnp.max(jnp.where(active, hi, -big)),
-                   jnp.min(jnp.where(active, lo, big)))
-    span = K1 - K0
+    K0, span, d_stop = _k_range(k_enter, k_exit, d_max, active)
     dk = k_exit - k_enter
     safe_dk = jnp.where(dk == 0.0, 1.0, dk)
-    # the slab width at depth d is |span| 2^-d; a ray needs its piece (in s) <= its eps
-    ratio = jnp.abs(span) / jnp.maximum(jnp.abs(dk), 1e-30)
-    d_need = jnp.where(active, d_max + jnp.ceil(jnp.log2(jnp.maximum(ratio, 1.0))), 0)
-    d_stop = jnp.clip(jnp.max(d_need), 0, MAX_DEPTH).astype(jnp.int32)
 
     def pieces(k, d):
         u0, u1 = piece(k, d)
@@ -323,6 +311,24 @@ def k_bisect(test, k_enter, k_exit, d_max, active, max_steps: int, verify=None) 
     k, d, live, hit, s_hit, steps = lax.while_loop(cond, body, init)
     return Result(s_hit, hit, jnp.broadcast_to(steps, n))
 
+
+def _k_range(k_enter, k_exit, d_max, active):
+    """(K0, span, d_stop) of a K-bisection packet: the start of its K range in the
+    marching direction, the signed range K1 - K0, and the shared depth that gives every
+    active ray pieces no longer than its eps (Eq. 6.16-6.17)."""
+    big = jnp.float32(3e38)
+    lo = jnp.minimum(k_enter, k_exit)
+    hi = jnp.maximum(k_enter, k_exit)
+    forward = jnp.sum(jnp.where(active, k_exit - k_enter, 0.0)) >= 0.0
+    K0 = jnp.where(forward, jnp.min(jnp.where(active, lo, big)),
+                   jnp.max(jnp.where(active, hi, -big)))
+    K1 = jnp.where(forward, jnp.max(jnp.where(active, hi, -big)),
+                   jnp.min(jnp.where(active, lo, big)))
+    span = K1 - K0
+    # the slab width at depth d is |span| 2^-d; a ray needs its piece (in s) <= its eps
+    ratio = jnp.abs(span) / jnp.maximum(jnp.abs(k_exit - k_enter), 1e-30)
+    d_need = jnp.where(active, d_max + jnp.ceil(jnp.log2(jnp.maximum(ratio, 1.0))), 0)
+    return K0, span, jnp.clip(jnp.max(d_need), 0, MAX_DEPTH).astype(jnp.int32)
 
 # The pilot of `start_depth`: this many rays, depths 0..PILOT_DEPTH.
 PILOT_RAYS = 64
