@@ -316,5 +316,6 @@ def test_nan_constant_is_empty_and_inf_point_stays_a_point():
     assert (float(r.lo), float(r.hi)) == (np.inf, np.inf)
     r = aa.to_interval(aa.mul(x, jnp.float32(-jnp.inf)))
     assert (float(r.lo), float(r.hi)) == (-np.inf, -np.inf)
-    r = ia.mul(aa._range(inf), aa._range(aa.from_interval(ji.interval(-1.0, 2.0), 0, 1)))
+    r = ia.mul(aa.padded_range(inf),
+               aa.padded_range(aa.from_interval(ji.interval(-1.0, 2.0), 0, 1)))
     assert (float(r.lo), float(r.hi)) == (-np.inf, np.inf)

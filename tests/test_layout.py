@@ -18,29 +18,14 @@ MAX_LINES = 60
 
 # (file, name): private names still crossing files
 ALLOWED_PRIVATE = {
-    # implicit/program.py, _tape_rays.py and arith/_tape.py are being changed for issue 27
+    # implicit/program.py, _tape_rays.py and _auto.py are being changed for issue 27
     # (the lead renames these)
     ("implicit/_tape_rays.py", "_chunked_eval"),
     ("implicit/_tape_rays.py", "_histogram"),
     ("implicit/_auto.py", "_eval"),
     ("implicit/program.py", "_tidy"),
-    ("arith/_tape.py", "_range"),
     # render/_distributed.py belongs to another change (it should call `_plan.prepare`)
     ("render/_distributed.py", "_check_scene"),
-    # arith's own modules share private helpers (outside this change)
-    *{("arith/_affine.py", n) for n in (
-        "_finite", "_flag", "_guard", "_guard_unbounded", "_interval_fallback", "_is_empty",
-        "_lift", "_n_of", "_range", "_select", "_times", "_TRIG_MAX_ARG")},
-    *{("arith/_array_rules.py", n) for n in (
-        "_lift", "_same_nan", "_make", "_range", "_chebyshev", "_select")},
-    *{("arith/_extend.py", n) for n in ("_n_of", "_is_empty", "_range")},
-    ("arith/_interval.py", "_make"),
-    ("arith/_interval.py", "_same_nan"),
-    ("arith/_interval_logic.py", "_make"),
-    ("arith/_lift.py", "_range"),
-    ("arith/_rules.py", "_via_interval"),
-    ("arith/_affine.py", "_ops"),
-    ("arith/_interval.py", "_ops"),
 }
 
 # functions longer than MAX_LINES, left to shorten (file, name)

@@ -49,19 +49,19 @@ import numpy as np
 from . import _interval as ia
 from ._affine_type import (  # noqa: F401 - re-exported: aa is the namespace
     Affine,
-    _finite,
-    _flag,
-    _guard,
-    _guard_unbounded,
-    _interval_fallback,
-    _is_empty,
-    _lift,
-    _n_of,
-    _range,
-    _select,
+    all_defined,
     as_affine,
     from_interval,
+    guard,
+    guard_unbounded,
+    interval_fallback,
+    is_empty,
+    is_finite,
+    lift,
+    n_of,
+    padded_range,
     radius,
+    select,
     to_interval,
     with_symbols,
 )
@@ -74,6 +74,8 @@ __all__ = [
     "tan", "floor", "ceil", "sign", "fmod", "minimum", "maximum", "clamp", "lt", "le", "gt",
     "ge", "eq", "ne", "select_n", "where", "widen",
 ]
+# Package-internal, shared by arith's modules (not API): `chebyshev`, `via_interval` and
+# `_affine_type`'s helpers imported above (`padded_range`, `lift`, `n_of`, `select`, ...).
 
 
 # ------------------------------------------------------------------ affine operations
@@ -108,25 +110,25 @@ def add(a, b) -> Affine:
         return _shifted(a, b, 1.0)
     if _is_const(a) and isinstance(b, Affine):
         return _shifted(b, a, 1.0)
-    a, b = _lift(a, b)
+    a, b = lift(a, b)
     # no overflow guard needed: an overflowed centre with a finite error term reads as
-    # the entire line in `to_interval` / `_range`
-    return Affine(a.center + b.center, a.dev + b.dev, a.err + b.err, _flag(a, b))
+    # the entire line in `to_interval` / `padded_range`
+    return Affine(a.center + b.center, a.dev + b.dev, a.err + b.err, all_defined(a, b))
 
 
 def neg(a) -> Affine:
-    (a,) = _lift(a)
+    (a,) = lift(a)
     return Affine(-a.center, -a.dev, a.err, a.defined)
 
 
 def sub(a, b) -> Affine:
     if a is b:
-        zero = jnp.where(_is_empty(a), jnp.nan, 0.0)
+        zero = jnp.where(is_empty(a), jnp.nan, 0.0)
         return Affine(zero, jnp.zeros_like(a.dev), zero, a.defined)
     if _is_const(b) and isinstance(a, Affine):
         return _shifted(a, b, -1.0)
-    a, b = _lift(a, b)
-    return Affine(a.center - b.center, a.dev - b.dev, a.err + b.err, _flag(a, b))
+    a, b = lift(a, b)
+    return Affine(a.center - b.center, a.dev - b.dev, a.err + b.err, all_defined(a, b))
 
 
 def _is_point(x: Affine):
@@ -140,30 +142,31 @@ def mul(a, b) -> Affine:
     if not isinstance(a, (Affine, Interval)):
         a, b = b, a
     if not isinstance(b, (Affine, Interval)):  # constant factor: an exact affine scaling
-        (a,) = _lift(a)
+        (a,) = lift(a)
         k = jnp.asarray(b, a.center.dtype)
         # a NaN factor gives no value (empty), as in interval arithmetic
-        return _guard_unbounded(Affine(k * a.center, k[..., None] * a.dev,
-                                       ia._times(jnp.abs(k), a.err), a.defined), a,
-                                as_affine(k, a.n), fallback=ia.mul(_range(a), k))
-    a, b = _lift(a, b)
+        return guard_unbounded(Affine(k * a.center, k[..., None] * a.dev,
+                                      ia.endpoint_product(jnp.abs(k), a.err), a.defined), a,
+                               as_affine(k, a.n), fallback=ia.mul(padded_range(a), k))
+    a, b = lift(a, b)
     c = a.center * b.center
     dev = a.center[..., None] * b.dev + b.center[..., None] * a.dev
-    err = (ia._times(jnp.abs(a.center), b.err) + ia._times(jnp.abs(b.center), a.err)
-           + ia._times(radius(a), radius(b)))
-    return _guard_unbounded(Affine(c, dev, err, _flag(a, b)), a, b,
-                            fallback=ia.mul(_range(a), _range(b)))
+    err = (ia.endpoint_product(jnp.abs(a.center), b.err)
+           + ia.endpoint_product(jnp.abs(b.center), a.err)
+           + ia.endpoint_product(radius(a), radius(b)))
+    return guard_unbounded(Affine(c, dev, err, all_defined(a, b)), a, b,
+                           fallback=ia.mul(padded_range(a), padded_range(b)))
 
 
 def square(a) -> Affine:
     """Tight AF1 square: ``(x0 + L)^2 = x0^2 + 2 x0 L + L^2`` with ``L^2 in [0, R^2]``."""
-    (a,) = _lift(a)
+    (a,) = lift(a)
     r = radius(a)
     half_r2 = 0.5 * r * r
     c = a.center * a.center + half_r2
     dev = 2.0 * a.center[..., None] * a.dev
-    err = 2.0 * ia._times(jnp.abs(a.center), a.err) + half_r2
-    return _guard_unbounded(Affine(c, dev, err, a.defined), a, fallback=ia.square(_range(a)))
+    err = 2.0 * ia.endpoint_product(jnp.abs(a.center), a.err) + half_r2
+    return guard_unbounded(Affine(c, dev, err, a.defined), a, fallback=ia.square(padded_range(a)))
 
 
 def _linearized(x: Affine, alpha, d_lo, d_hi, fallback_iv: Interval, defined) -> Affine:
@@ -171,12 +174,12 @@ def _linearized(x: Affine, alpha, d_lo, d_hi, fallback_iv: Interval, defined) ->
     zeta = 0.5 * (d_lo + d_hi)
     delta = 0.5 * (d_hi - d_lo)
     out = Affine(alpha * x.center + zeta, alpha[..., None] * x.dev,
-                 ia._times(jnp.abs(alpha), x.err) + delta, defined)
+                 ia.endpoint_product(jnp.abs(alpha), x.err) + delta, defined)
     # every component is finite when this bound on their magnitudes is (rounding is
     # monotone); it reads per-element coefficients only, so XLA computes each component
     # of the result on its own (a test on the result itself fused all of them into each)
     bound = jnp.abs(alpha) * (jnp.abs(x.center) + radius(x)) + jnp.abs(zeta) + delta
-    return _select(jnp.isfinite(bound), out, _interval_fallback(fallback_iv, x.n))
+    return select(jnp.isfinite(bound), out, interval_fallback(fallback_iv, x.n))
 
 
 # Relative safety margin (in f32 ulps) on linearisation errors: the endpoint values,
@@ -191,8 +194,8 @@ def _pad(delta_terms, dtype, ulps=None):
     return ulps * eps * delta_terms + float(jnp.finfo(dtype).tiny)
 
 
-def _chebyshev(x: Affine, g, dg, dg_inv, convex, iv: Interval, fallback_iv: Interval,
-               g_dg=None, abs_pad=0.0, ulps=None, chord=None):
+def chebyshev(x: Affine, g, dg, dg_inv, convex, iv: Interval, fallback_iv: Interval,
+              g_dg=None, abs_pad=0.0, ulps=None, chord=None):
     """Chebyshev linearisation of a convex (or concave, ``convex=False``) function on the
     range `iv` of `x` (already restricted to the domain).
 
@@ -223,7 +226,8 @@ def _chebyshev(x: Affine, g, dg, dg_inv, convex, iv: Interval, fallback_iv: Inte
     g_xi, dg_xi = (g(xi), dg(xi)) if g_dg is None else g_dg(xi)
     hp = s * dg_xi - beta
     d_hi = jnp.maximum(h_a, h_b)
-    d_lo = (s * g_xi - beta * xi) + jnp.minimum(ia._times(hp, a - xi), ia._times(hp, b - xi))
+    d_lo = (s * g_xi - beta * xi) + jnp.minimum(ia.endpoint_product(hp, a - xi),
+                                                ia.endpoint_product(hp, b - xi))
     pad = _pad(jnp.abs(ga) + jnp.abs(gb) + jnp.abs(beta) * (jnp.abs(a) + jnp.abs(b)),
                a.dtype, ulps) + abs_pad
     d_lo, d_hi = d_lo - pad, d_hi + pad
@@ -256,49 +260,49 @@ def recip(a) -> Affine:
     """1 / a: Chebyshev on a range away from 0, min-range (slope ``-1/mag^2``, the
     form's range is ``[1/hi, 1/lo]``) near the pole, unbounded (interval rule) when the
     range touches 0."""
-    (a,) = _lift(a)
-    iv = _range(a)
+    (a,) = lift(a)
+    iv = padded_range(a)
     positive = iv.lo > 0
     fallback = ia.recip(iv)
-    out = _chebyshev(a, lambda v: 1.0 / v, lambda v: -1.0 / (v * v),
-                     lambda al: jnp.where(positive, 1.0, -1.0) * jnp.sqrt(-1.0 / al),
-                     positive, iv, fallback)
+    out = chebyshev(a, lambda v: 1.0 / v, lambda v: -1.0 / (v * v),
+                    lambda al: jnp.where(positive, 1.0, -1.0) * jnp.sqrt(-1.0 / al),
+                    positive, iv, fallback)
     # min-range: g - alpha x is non-increasing for alpha >= -1/mag^2; alpha rounded
     # toward 0 by a few ulps keeps it so
     m = ia.mag(iv)
     eps = float(jnp.finfo(m.dtype).eps)
     alpha = -(1.0 / (m * m)) * (1.0 - 4.0 * eps)
     near_pole = _minrange(a, lambda v: 1.0 / v, alpha, iv, fallback)
-    out = _select(m <= _RECIP_RATIO * ia.mig(iv), out, near_pole)
-    return _select((iv.lo > 0) | (iv.hi < 0), out, _interval_fallback(fallback, a.n))
+    out = select(m <= _RECIP_RATIO * ia.mig(iv), out, near_pole)
+    return select((iv.lo > 0) | (iv.hi < 0), out, interval_fallback(fallback, a.n))
 
 
 def div(a, b) -> Affine:
     if a is b:
-        one = jnp.where(_is_empty(a), jnp.nan, 1.0)
+        one = jnp.where(is_empty(a), jnp.nan, 1.0)
         res = Affine(one, jnp.zeros_like(a.dev), one - 1.0, a.defined)
         # x / x is 1 except where x may be 0 (undefined there; keep it honest)
-        return _select(ia.contains(_range(a), 0.0),
-                       _interval_fallback(ia.div(_range(a), _range(a)), a.n), res)
+        return select(ia.contains(padded_range(a), 0.0),
+                      interval_fallback(ia.div(padded_range(a), padded_range(a)), a.n), res)
     if not isinstance(b, (Affine, Interval)):
         # a constant divisor scales exactly (one rounding per term); 0 takes recip's path
-        (a,) = _lift(a)
+        (a,) = lift(a)
         b = jnp.asarray(b, a.center.dtype)
         safe = jnp.where(b == 0, 1.0, b)
         scaled = Affine(a.center / safe, a.dev / safe[..., None], a.err / jnp.abs(safe),
                         a.defined)
         if _is_concrete(b) and bool(np.all(np.asarray(b) != 0)):
             return scaled  # the usual x / 8: no recip of the constant to select from
-        return _select(b != 0, scaled, mul(a, recip(b)))
-    a, b = _lift(a, b)
+        return select(b != 0, scaled, mul(a, recip(b)))
+    a, b = lift(a, b)
     return mul(a, recip(b))
 
 
 def abs(a) -> Affine:  # noqa: A001
     """|x| by its chord: slope ``(|hi|-|lo|)/(hi-lo)``; ``|x| - slope*x`` is >= 0 and
     largest at the ends. Exact (slope +-1) when the range does not straddle 0."""
-    (a,) = _lift(a)
-    iv = _range(a)
+    (a,) = lift(a)
+    iv = padded_range(a)
     lo, hi = iv.lo, iv.hi
     w = hi - lo
     alpha = jnp.where(w > 0, (jnp.abs(hi) - jnp.abs(lo)) / jnp.where(w > 0, w, 1.0),
@@ -320,8 +324,8 @@ def relu(a) -> Affine:
     range (unbounded, empty, or near overflow); that test reads the range only, so each
     component of the result is computed on its own (a guard on the result's finiteness
     made XLA compute all of them for each: measured 1.5x slower on networks)."""
-    (a,) = _lift(a)
-    iv = _range(a)
+    (a,) = lift(a)
+    iv = padded_range(a)
     lo, hi = iv.lo, iv.hi
     across = (lo < 0) & (hi > 0)
     w = jnp.where(across, hi - lo, 1.0)
@@ -332,7 +336,7 @@ def relu(a) -> Affine:
                  a.defined)
     quarter = 0.25 * float(jnp.finfo(lo.dtype).max)
     moderate = (jnp.abs(lo) < quarter) & (jnp.abs(hi) < quarter)  # False for NaN
-    return _select(moderate, out, _interval_fallback(ia.maximum(iv, 0.0), a.n))
+    return select(moderate, out, interval_fallback(ia.maximum(iv, 0.0), a.n))
 
 
 def _is_concrete(x) -> bool:
@@ -355,19 +359,19 @@ def maximum(a, b) -> Affine:
     """max(a, b) = b + relu(a - b): exactly a or b where the difference has a sign."""
     if _is_zero(b) or _is_zero(a):  # relu: one rule, no shift and no selects around it
         x, zero = (a, b) if _is_zero(b) else (b, a)
-        (x,) = _lift(x)
+        (x,) = lift(x)
         shape = jnp.broadcast_shapes(jnp.shape(x.center), jnp.shape(zero))
         return _broadcast(relu(x), shape)
-    a, b = _lift(a, b)
-    d = _range(sub(a, b))
-    return _select(d.lo >= 0, a, _select(d.hi <= 0, b, add(b, relu(sub(a, b)))))
+    a, b = lift(a, b)
+    d = padded_range(sub(a, b))
+    return select(d.lo >= 0, a, select(d.hi <= 0, b, add(b, relu(sub(a, b)))))
 
 
 def minimum(a, b) -> Affine:
     """min(a, b) = a - relu(a - b): exactly a or b where the difference has a sign."""
-    a, b = _lift(a, b)
-    d = _range(sub(a, b))
-    return _select(d.lo >= 0, b, _select(d.hi <= 0, a, sub(a, relu(sub(a, b)))))
+    a, b = lift(a, b)
+    d = padded_range(sub(a, b))
+    return select(d.lo >= 0, b, select(d.hi <= 0, a, sub(a, relu(sub(a, b)))))
 
 
 def clamp(lower, x, upper) -> Affine:
@@ -382,9 +386,9 @@ def ipow(a, n: int) -> Affine:
     """Integer power: Chebyshev for even n (convex); odd n is convex/concave on one side
     of 0 and ``x * x**(n-1)`` across it."""
     n = int(n)
-    (a,) = _lift(a)
+    (a,) = lift(a)
     if n == 0:
-        one = jnp.where(_is_empty(a), jnp.nan, 1.0)
+        one = jnp.where(is_empty(a), jnp.nan, 1.0)
         return Affine(one, jnp.zeros_like(a.dev), one - 1.0, a.defined)
     if n < 0:
         return recip(ipow(a, -n))
@@ -392,118 +396,118 @@ def ipow(a, n: int) -> Affine:
         return a
     if n == 2:
         return square(a)
-    iv = _range(a)
+    iv = padded_range(a)
     g = lambda v: jax.lax.integer_pow(v, n)  # noqa: E731
     dg = lambda v: n * jax.lax.integer_pow(v, n - 1)  # noqa: E731
     fallback = ia.ipow(iv, n)
     if n % 2 == 0:
-        return _chebyshev(a, g, dg, _even_power_inv(n), True, iv, fallback)
+        return chebyshev(a, g, dg, _even_power_inv(n), True, iv, fallback)
     positive = iv.lo >= 0
-    side = _chebyshev(a, g, dg, lambda al: jnp.where(positive, 1.0, -1.0)
-                      * (jnp.abs(al) / n) ** (1.0 / (n - 1)), positive, iv, fallback)
+    side = chebyshev(a, g, dg, lambda al: jnp.where(positive, 1.0, -1.0)
+                     * (jnp.abs(al) / n) ** (1.0 / (n - 1)), positive, iv, fallback)
     across = mul(a, ipow(a, n - 1))
-    return _select((iv.lo >= 0) | (iv.hi <= 0), side, across)
+    return select((iv.lo >= 0) | (iv.hi <= 0), side, across)
 
 
 def pow(a, p) -> Affine:  # noqa: A001
     """``a ** p``: integer p -> `ipow`; constant real p -> Chebyshev on ``a >= 0``
     (convex for p > 1 or p < 0, concave for 0 < p < 1); an interval/affine exponent
     falls back to Interval."""
-    (a,) = _lift(a)
+    (a,) = lift(a)
     if not isinstance(p, (Affine, Interval, jax.core.Tracer)):
         p_np = np.asarray(p)
         if p_np.ndim == 0:
             pf = float(p_np)
             if not np.isfinite(pf):
-                return _interval_fallback(ia.pow(_range(a), pf), a.n)
+                return interval_fallback(ia.pow(padded_range(a), pf), a.n)
             if pf == int(pf):
                 return ipow(a, int(pf))
-            iv = ia.restrict(_range(a), 0.0)
-            return _chebyshev(a, lambda v: v**pf, lambda v: pf * v ** (pf - 1),
-                              lambda al: (al / pf) ** (1.0 / (pf - 1)),
-                              (pf > 1) or (pf < 0), iv, ia.pow(iv, pf))
-    p_iv = _range(p) if isinstance(p, Affine) else p
-    return _interval_fallback(ia.pow(_range(a), p_iv), a.n)
+            iv = ia.restrict(padded_range(a), 0.0)
+            return chebyshev(a, lambda v: v**pf, lambda v: pf * v ** (pf - 1),
+                             lambda al: (al / pf) ** (1.0 / (pf - 1)),
+                             (pf > 1) or (pf < 0), iv, ia.pow(iv, pf))
+    p_iv = padded_range(p) if isinstance(p, Affine) else p
+    return interval_fallback(ia.pow(padded_range(a), p_iv), a.n)
 
 
 def sqrt(a) -> Affine:
-    (a,) = _lift(a)
-    iv = ia.restrict(_range(a), 0.0)
-    return _chebyshev(a, jnp.sqrt, lambda v: 0.5 / jnp.sqrt(v), lambda al: 0.25 / (al * al),
-                      False, iv, ia.sqrt(iv))
+    (a,) = lift(a)
+    iv = ia.restrict(padded_range(a), 0.0)
+    return chebyshev(a, jnp.sqrt, lambda v: 0.5 / jnp.sqrt(v), lambda al: 0.25 / (al * al),
+                     False, iv, ia.sqrt(iv))
 
 
 def log(a) -> Affine:
-    (a,) = _lift(a)
-    iv = ia.restrict(_range(a), 0.0)
-    return _chebyshev(a, jnp.log, lambda v: 1.0 / v, lambda al: 1.0 / al, False, iv,
-                      ia.log(iv))
+    (a,) = lift(a)
+    iv = ia.restrict(padded_range(a), 0.0)
+    return chebyshev(a, jnp.log, lambda v: 1.0 / v, lambda al: 1.0 / al, False, iv,
+                     ia.log(iv))
 
 
 def exp(a) -> Affine:
-    (a,) = _lift(a)
-    iv = _range(a)
-    return _chebyshev(a, jnp.exp, jnp.exp, jnp.log, True, iv, ia.exp(iv))
+    (a,) = lift(a)
+    iv = padded_range(a)
+    return chebyshev(a, jnp.exp, jnp.exp, jnp.log, True, iv, ia.exp(iv))
 
 
 def expm1(a) -> Affine:
     """e^x - 1: convex and increasing like exp (Chebyshev), accurate near 0 where exp(x)
     - 1 cancels; ``where(h > 0, h, expm1(h))`` (elu) joins two close forms."""
-    (a,) = _lift(a)
-    iv = _range(a)
-    return _chebyshev(a, jnp.expm1, jnp.exp, jnp.log, True, iv,
-                      ia.monotone_increasing(jnp.expm1)(iv))
+    (a,) = lift(a)
+    iv = padded_range(a)
+    return chebyshev(a, jnp.expm1, jnp.exp, jnp.log, True, iv,
+                     ia.monotone_increasing(jnp.expm1)(iv))
 
 
 def log1p(a) -> Affine:
     """log(1 + x) on x >= -1: concave and increasing (Chebyshev)."""
-    (a,) = _lift(a)
-    iv = ia.restrict(_range(a), -1.0)
-    return _chebyshev(a, jnp.log1p, lambda v: 1.0 / (1.0 + v), lambda al: 1.0 / al - 1.0,
-                      False, iv, ia.monotone_increasing(jnp.log1p)(iv))
+    (a,) = lift(a)
+    iv = ia.restrict(padded_range(a), -1.0)
+    return chebyshev(a, jnp.log1p, lambda v: 1.0 / (1.0 + v), lambda al: 1.0 / al - 1.0,
+                     False, iv, ia.monotone_increasing(jnp.log1p)(iv))
 
 
 def cosh(a) -> Affine:
-    (a,) = _lift(a)
-    iv = _range(a)
-    return _chebyshev(a, jnp.cosh, jnp.sinh, jnp.arcsinh, True, iv, ia.cosh(iv))
+    (a,) = lift(a)
+    iv = padded_range(a)
+    return chebyshev(a, jnp.cosh, jnp.sinh, jnp.arcsinh, True, iv, ia.cosh(iv))
 
 
 def sinh(a) -> Affine:
-    (a,) = _lift(a)
-    iv = _range(a)
+    (a,) = lift(a)
+    iv = padded_range(a)
     return _minrange(a, jnp.sinh, jnp.cosh(ia.mig(iv)), iv, ia.sinh(iv))
 
 
 def tanh(a) -> Affine:
-    (a,) = _lift(a)
-    iv = _range(a)
+    (a,) = lift(a)
+    iv = padded_range(a)
     t = jnp.tanh(ia.mag(iv))
     return _minrange(a, jnp.tanh, 1.0 - t * t, iv, ia.tanh(iv))
 
 
 def atan(a) -> Affine:
-    (a,) = _lift(a)
-    iv = _range(a)
+    (a,) = lift(a)
+    iv = padded_range(a)
     m = ia.mag(iv)
     return _minrange(a, jnp.arctan, 1.0 / (1.0 + m * m), iv, ia.atan(iv))
 
 
 def cbrt(a) -> Affine:
-    (a,) = _lift(a)
-    iv = _range(a)
+    (a,) = lift(a)
+    iv = padded_range(a)
     m = ia.mag(iv)
     return _minrange(a, jnp.cbrt, 1.0 / (3.0 * jnp.cbrt(m * m)), iv, ia.cbrt(iv))
 
 
-def _via_interval(fn):
+def via_interval(fn):
     def rule(*args):
-        # constants stay exact points: lifted, `_range` would pad them by an ulp, and
+        # constants stay exact points: lifted, `padded_range` would pad them by an ulp, and
         # rules that are exact for a point operand (fmod by a constant within one
         # period) would fall back to their loose bound (x // 0.5, remainder, fmod)
-        n = _n_of(*args)
-        return _interval_fallback(
-            fn(*[_range(x) if isinstance(x, Affine) else ia.as_interval(x) for x in args]), n)
+        n = n_of(*args)
+        return interval_fallback(
+            fn(*[padded_range(x) if isinstance(x, Affine) else ia.as_interval(x) for x in args]), n)
 
     rule.__name__ = fn.__name__
     rule.__doc__ = f"{fn.__name__} through Interval (correlation not kept)."
@@ -520,14 +524,14 @@ def _sinusoid(fn, dfn, ia_fn, name):
     tiny = float(jnp.finfo(jnp.float32).tiny)
 
     def rule(x):
-        x = as_affine(x, _n_of(x))
+        x = as_affine(x, n_of(x))
         m, r = x.center, radius(x)
         s, c = fn(m), dfn(m)
         delta = 0.5 * r * r + 2.0 * eps * (jnp.abs(s) + jnp.abs(c) * r + 1.0) + tiny
         taylor = Affine(s, c[..., None] * x.dev, jnp.abs(c) * x.err + delta, x.defined)
-        fallback = _interval_fallback(ia_fn(_range(x)), x.n)
-        use = (delta <= 0.25 * r) & (jnp.abs(m) <= ia._TRIG_MAX_ARG) & _finite(x)
-        return _select(use, taylor, fallback)
+        fallback = interval_fallback(ia_fn(padded_range(x)), x.n)
+        use = (delta <= 0.25 * r) & (jnp.abs(m) <= ia.TRIG_MAX_ARG) & is_finite(x)
+        return select(use, taylor, fallback)
 
     rule.__name__ = name
     return rule
@@ -535,12 +539,12 @@ def _sinusoid(fn, dfn, ia_fn, name):
 
 sin = _sinusoid(jnp.sin, jnp.cos, ia.sin, "sin")
 cos = _sinusoid(jnp.cos, lambda m: -jnp.sin(m), ia.cos, "cos")
-atan2 = _via_interval(ia.atan2)
-tan = _via_interval(ia.tan)
-floor = _via_interval(ia.floor)
-ceil = _via_interval(ia.ceil)
-sign = _via_interval(ia.sign)
-fmod = _via_interval(ia.fmod)
+atan2 = via_interval(ia.atan2)
+tan = via_interval(ia.tan)
+floor = via_interval(ia.floor)
+ceil = via_interval(ia.ceil)
+sign = via_interval(ia.sign)
+fmod = via_interval(ia.fmod)
 
 
 # ----------------------------------------------------------- comparisons and select
@@ -548,8 +552,8 @@ fmod = _via_interval(ia.fmod)
 
 def _compare(fn):
     def rule(a, b):
-        a, b = _lift(a, b)
-        return fn(_range(a), _range(b))
+        a, b = lift(a, b)
+        return fn(padded_range(a), padded_range(b))
 
     rule.__name__ = fn.__name__
     rule.__doc__ = f"Three-valued {fn.__name__} on the affine ranges (an Interval of bools)."
@@ -574,7 +578,7 @@ def _join(a: Affine, b: Affine) -> Affine:
     err = jnp.maximum(a.err, b.err) + half_diff + _pad(scale, a.center.dtype, 4.0)
     joined = Affine(0.5 * (a.center + b.center), 0.5 * (a.dev + b.dev), err,
                     a.defined & b.defined)
-    return _select(_is_empty(a), b, _select(_is_empty(b), a, joined))
+    return select(is_empty(a), b, select(is_empty(b), a, joined))
 
 
 def _lines_extreme(slopes, intercepts, mu, pick):
@@ -653,29 +657,29 @@ def select_n(which, *cases, sign: Affine | None = None) -> Affine:
     the join then also tries a chord in g (`_join_on_sign`), as relu's."""
     which = ia.as_interval(which)
     if sign is not None and len(cases) == 2:  # one symbol count for the cases and g
-        *cases, sign = _lift(*cases, sign)
+        *cases, sign = lift(*cases, sign)
     else:
-        cases, sign = _lift(*cases), None
+        cases, sign = lift(*cases), None
     # the hull as a form (its centre and radius rounded: an ulp more)
-    hull = widen(_interval_fallback(ia.select_n(which, *[_range(c) for c in cases]),
-                                    cases[0].n))
+    hull = widen(interval_fallback(ia.select_n(which, *[padded_range(c) for c in cases]),
+                                   cases[0].n))
     w_lo, w_hi = which.lo.astype(jnp.int32), which.hi.astype(jnp.int32)
     joined, started = cases[0], w_lo <= 0
     for i, c in enumerate(cases[1:], 1):
         take = (w_lo <= i) & (i <= w_hi)
-        joined = _select(take, _select(started, _join(joined, c), c), joined)
+        joined = select(take, select(started, _join(joined, c), c), joined)
         started = started | take
     if sign is not None:
         chord = _join_on_sign(cases[1], cases[0], _broadcast(sign, hull.shape))
-        better = _finite(chord) & ~(chord.err > joined.err)
-        joined = _select(better & (w_lo == 0) & (w_hi == 1), chord, joined)
+        better = is_finite(chord) & ~(chord.err > joined.err)
+        joined = select(better & (w_lo == 0) & (w_hi == 1), chord, joined)
     # the hull where the join's uncorrelated part is wider than the hull itself
-    tighter = _finite(joined) & ~(joined.err > radius(hull))
-    out = _select(tighter, joined, hull)
+    tighter = is_finite(joined) & ~(joined.err > radius(hull))
+    out = select(tighter, joined, hull)
     out = Affine(out.center, out.dev, out.err, hull.defined)  # the cases it may take
     certain = which.lo == which.hi
     for i, c in enumerate(cases):
-        out = _select(certain & (w_lo == i), c, out)
+        out = select(certain & (w_lo == i), c, out)
     return out
 
 
@@ -699,4 +703,4 @@ def widen(a: Affine, ulps: float = 1.0, scale=None) -> Affine:
     return Affine(a.center, a.dev, err, a.defined)
 
 
-Affine._ops = sys.modules[__name__]
+Affine.ops = sys.modules[__name__]

@@ -14,6 +14,10 @@ import numpy as np
 from . import _interval as ia
 from ._interval import Interval, OperatorsMixin
 
+# Package-internal, shared by arith's modules (not API): `is_empty`, `padded_range`,
+# `n_of`, `lift`, `all_defined`, `interval_fallback`, `select`, `is_finite`, `guard`,
+# `guard_unbounded`.
+
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -62,7 +66,7 @@ class Affine(OperatorsMixin):
 # ----------------------------------------------------------------------- conversion
 
 
-def _is_empty(x: Affine):
+def is_empty(x: Affine):
     return jnp.isnan(x.err)
 
 
@@ -76,13 +80,13 @@ def to_interval(x: Affine) -> Interval:
     r = radius(x)
     lo, hi = x.center - r, x.center + r
     # inf - inf from an overflowed form is not empty: only a NaN error term means empty
-    overflow = ~_is_empty(x)
+    overflow = ~is_empty(x)
     lo = jnp.where(jnp.isnan(lo) & overflow, -jnp.inf, lo)
     hi = jnp.where(jnp.isnan(hi) & overflow, jnp.inf, hi)
     return Interval(lo, hi, x.defined)
 
 
-def _range(x: Affine) -> Interval:
+def padded_range(x: Affine) -> Interval:
     """`to_interval` padded by an ulp of ``|center| + rad``: the range the rules work on.
     Rounding ``center +- rad`` to nearest can cut into the set (far from 0 the centre
     cannot even hold a small endpoint), so internal conversions pad all but exact points."""
@@ -152,61 +156,61 @@ def as_affine(x, n: int) -> Affine:
     return Affine(x, jnp.zeros(x.shape + (n,), x.dtype), err)
 
 
-def _n_of(*xs) -> int:
+def n_of(*xs) -> int:
     """The symbol count the operands meet at: the largest of their forms' (1 if none)."""
     return max([x.n for x in xs if isinstance(x, Affine)], default=1)
 
 
-def _lift(*xs):
-    """The operands as affine forms over one symbol count (`_n_of`)."""
-    n = _n_of(*xs)
+def lift(*xs):
+    """The operands as affine forms over one symbol count (`n_of`)."""
+    n = n_of(*xs)
     return [as_affine(x, n) for x in xs]
 
 
-def _flag(*xs):
+def all_defined(*xs):
     f = xs[0].defined
     for x in xs[1:]:
         f = f & x.defined
     return f
 
 
-def _interval_fallback(iv: Interval, n: int) -> Affine:
+def interval_fallback(iv: Interval, n: int) -> Affine:
     """An Interval result as an affine form with no correlation (error term only)."""
     return from_interval(iv, None, n)
 
 
-def _select(mask, a: Affine, b: Affine) -> Affine:
+def select(mask, a: Affine, b: Affine) -> Affine:
     return Affine(jnp.where(mask, a.center, b.center),
                   jnp.where(mask[..., None], a.dev, b.dev),
                   jnp.where(mask, a.err, b.err),
                   jnp.where(mask, a.defined, b.defined))
 
 
-def _finite(x: Affine):
+def is_finite(x: Affine):
     # one reduction instead of three: the sum is finite iff every term is
     return jnp.isfinite(x.center + x.err + jnp.sum(x.dev, axis=-1))
 
 
-def _guard(result: Affine, fallback_iv: Interval) -> Affine:
+def guard(result: Affine, fallback_iv: Interval) -> Affine:
     """Use the interval fallback wherever the affine result is not finite."""
-    return _select(_finite(result), result, _interval_fallback(fallback_iv, result.n))
+    return select(is_finite(result), result, interval_fallback(fallback_iv, result.n))
 
 
-def _guard_unbounded(result: Affine, *inputs: Affine, fallback: Interval | None = None
-                     ) -> Affine:
+def guard_unbounded(result: Affine, *inputs: Affine, fallback: Interval | None = None
+                    ) -> Affine:
     """Overflow (or inf * 0) in a polynomial operation: the interval result `fallback`
     lifted (an infinite point such as inf * [1, 2] stays that point, so a box where f is
     +inf is rejected as in interval arithmetic) or else the entire line; results of empty
     (NaN) inputs stay empty."""
-    empty = _is_empty(inputs[0])
+    empty = is_empty(inputs[0])
     for x in inputs[1:]:
-        empty = empty | _is_empty(x)
+        empty = empty | is_empty(x)
     if fallback is None:
         unbounded = Affine(jnp.zeros_like(result.center), jnp.zeros_like(result.dev),
                            jnp.full_like(result.err, jnp.inf), result.defined)
     else:
-        unbounded = _interval_fallback(fallback, result.n)
+        unbounded = interval_fallback(fallback, result.n)
         unbounded = Affine(unbounded.center, unbounded.dev, unbounded.err, result.defined)
-    out = _select(_finite(result) | empty, result, unbounded)
+    out = select(is_finite(result) | empty, result, unbounded)
     # 0 * (empty) must stay empty: the products above treat 0 * NaN as 0
     return Affine(out.center, out.dev, jnp.where(empty, jnp.nan, out.err), out.defined)

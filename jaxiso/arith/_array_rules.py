@@ -35,7 +35,7 @@ def move_data(prim, params, invals, operands: slice) -> list:
         return list(out) if prim.multiple_results else [out]
 
     if any(isinstance(d, Affine) for d in data):
-        data = aa._lift(*data)
+        data = aa.lift(*data)
         devs = jax.vmap(bind, in_axes=-1, out_axes=-1)(*[d.dev for d in data])
         return [Affine(*parts) for parts in zip(
             bind(*[d.center for d in data]), devs, bind(*[d.err for d in data]),
@@ -60,7 +60,7 @@ def convert_affine(x: Affine, *, new_dtype, **params):
     through the (monotone) interval conversion; a cast to int gives an Interval."""
     if jnp.dtype(new_dtype) == x.center.dtype:
         return x
-    out = convert_interval(aa._range(x), new_dtype=new_dtype)
+    out = convert_interval(aa.padded_range(x), new_dtype=new_dtype)
     if jnp.issubdtype(new_dtype, jnp.floating):
         return aa.from_interval(out, None, x.n)
     return out
@@ -90,7 +90,7 @@ def reduce_monotone(reducer):
         return Interval(reducer(x.lo, axes), reducer(x.hi, axes), jnp.all(x.defined, axes))
 
     def affine_rule(x: Affine, *, axes, **params) -> Affine:
-        return aa.from_interval(interval_rule(aa._range(x), axes=axes), None, x.n)
+        return aa.from_interval(interval_rule(aa.padded_range(x), axes=axes), None, x.n)
 
     return interval_rule, affine_rule
 
@@ -165,7 +165,7 @@ def hypot_interval(x, y) -> Interval:
 
 
 def hypot_affine(x, y) -> Affine:
-    x, y = aa._lift(x, y)
+    x, y = aa.lift(x, y)
     return aa.sqrt(aa.add(aa.square(x), aa.square(y)))
 
 
@@ -204,15 +204,15 @@ def floor_divide_interval(a, b):
     exact = (jnp.isfinite(b) & (b != 0) & (ia.mag(a) < _FLOORDIV_EXACT * jnp.abs(b)))
     lo = jnp.where(exact, exact_lo, loose_lo)
     hi = jnp.where(exact, exact_hi, loose_hi)
-    lo, hi = ia._same_nan(lo, hi, a.lo, a.hi, q.lo)
-    return ia._make(lo, hi, a, q)
+    lo, hi = ia.same_nan(lo, hi, a.lo, a.hi, q.lo)
+    return ia.make(lo, hi, a, q)
 
 
 def floor_divide_affine(a, b):
     """`floor_divide_interval` on the range of `a` (correlation not kept)."""
     if is_lifted(b) or not isinstance(a, Affine):
         return floor_divide_interval(a, b) if isinstance(a, Interval) else NotImplemented
-    out = floor_divide_interval(aa._range(a), b)
+    out = floor_divide_interval(aa.padded_range(a), b)
     return NotImplemented if out is NotImplemented else aa.from_interval(out, None, a.n)
 
 
@@ -235,9 +235,9 @@ def softplus_affine(x):
         s = jnp.clip(slope, 1e-30, 1.0 - 2.0**-24)
         return jnp.log(s) - jnp.log1p(-s)
 
-    iv = aa._range(x)
-    return aa._chebyshev(x, jax.nn.softplus, jax.nn.sigmoid, dg_inv, True, iv,
-                         ia.monotone_increasing(jax.nn.softplus)(iv))
+    iv = aa.padded_range(x)
+    return aa.chebyshev(x, jax.nn.softplus, jax.nn.sigmoid, dg_inv, True, iv,
+                        ia.monotone_increasing(jax.nn.softplus)(iv))
 
 
 def _elu_alpha(body, x, rest):
@@ -278,7 +278,7 @@ def elu_affine(x, *rest, body):
         return NotImplemented
     g = _elu(alpha)
     if not 0 < alpha <= 1:  # not convex: the monotone range, correlation dropped
-        return aa.from_interval(ia.monotone_increasing(g)(aa._range(x)), None, x.n)
+        return aa.from_interval(ia.monotone_increasing(g)(aa.padded_range(x)), None, x.n)
 
     def dg(v):
         return jnp.where(v > 0, 1.0, alpha * jnp.exp(jnp.minimum(v, 0.0)))
@@ -303,9 +303,9 @@ def elu_affine(x, *rest, body):
     # and exp of the width, not differences of e^v), so one ulp of the magnitudes pads it:
     # on 20,000 random forms it then holds float64 elu to 0.58 ulp of the values (2.6
     # without the pad; tests/test_neural.py).
-    iv = aa._range(x)
-    out = aa._chebyshev(x, g, dg, dg_inv, True, iv, ia.monotone_increasing(g)(iv),
-                        g_dg=g_dg, ulps=1.0, chord=chord)
+    iv = aa.padded_range(x)
+    out = aa.chebyshev(x, g, dg, dg_inv, True, iv, ia.monotone_increasing(g)(iv),
+                       g_dg=g_dg, ulps=1.0, chord=chord)
     # on a range >= 0 elu is x itself: exact, no rounding pad (the pads of neurons that
     # are surely on were the floor of a network's enclosure width on small pieces)
-    return aa._select(iv.lo >= 0, x, out)
+    return aa.select(iv.lo >= 0, x, out)

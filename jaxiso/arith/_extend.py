@@ -374,8 +374,8 @@ def _sign_of(ctx: _Context, cond):
 def _in_interval(jaxpr, consts, invals, ctx: _Context) -> list:
     """A call body evaluated in interval arithmetic on the affine operands' ranges; float
     results come back as affine forms on the error term (correlation not kept)."""
-    n = aa._n_of(*invals)
-    ranged = [aa._range(x) if isinstance(x, Affine) else x for x in invals]
+    n = aa.n_of(*invals)
+    ranged = [aa.padded_range(x) if isinstance(x, Affine) else x for x in invals]
     outs = _eval_jaxpr(jaxpr, consts, ranged, dataclasses.replace(ctx, arithmetic="interval"))
     return [aa.from_interval(o, None, n)
             if isinstance(o, Interval) and jnp.issubdtype(o.dtype, jnp.floating) else o
@@ -388,12 +388,12 @@ def _round(ctx: _Context, out, ulps, scale=None):
         return out
     if isinstance(out, Interval) and not jnp.issubdtype(out.lo.dtype, jnp.floating):
         return out
-    return out._ops.widen(out, ulps, scale)
+    return out.ops.widen(out, ulps, scale)
 
 
 def _same_var_truth(x, value: bool) -> Interval:
     """``x OP x``: `value` everywhere except on empty boxes (certainly false there)."""
-    empty = ia.is_empty(x) if isinstance(x, Interval) else aa._is_empty(x)
+    empty = ia.is_empty(x) if isinstance(x, Interval) else aa.is_empty(x)
     truth = jnp.full(shape_of(x), value) & ~empty
     return Interval(truth, truth, x.defined)
 

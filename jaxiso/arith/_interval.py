@@ -57,8 +57,6 @@ from ._interval_logic import (
 from ._interval_type import (  # noqa: F401 - re-exported: ia is the namespace
     Interval,
     OperatorsMixin,
-    _make,
-    _same_nan,
     as_interval,
     check_endpoints,
     contains,
@@ -70,6 +68,7 @@ from ._interval_type import (  # noqa: F401 - re-exported: ia is the namespace
     interval,
     is_empty,
     mag,
+    make,
     mid,
     mig,
     monotone_decreasing,
@@ -78,6 +77,7 @@ from ._interval_type import (  # noqa: F401 - re-exported: ia is the namespace
     point,
     rad,
     restrict,
+    same_nan,
     width,
 )
 
@@ -91,6 +91,8 @@ __all__ = [
     "where", "select_n", "widen",
     "certainly", "possibly", "is_true", "is_false", "is_unknown",
 ]
+# Package-internal, shared by arith's modules (not API): `endpoint_product`,
+# `TRIG_MAX_ARG` and `_interval_type`'s `make`, `same_nan`.
 
 _PI = math.pi
 
@@ -100,23 +102,23 @@ _PI = math.pi
 
 def add(a, b) -> Interval:
     a, b = as_interval(a), as_interval(b)
-    return _make(a.lo + b.lo, a.hi + b.hi, a, b)
+    return make(a.lo + b.lo, a.hi + b.hi, a, b)
 
 
 def sub(a, b) -> Interval:
     if a is b:  # x - x is exactly 0 wherever x is defined
         zero = jnp.zeros_like(a.lo)
-        return _make(*_same_nan(zero, zero, a.lo), a)
+        return make(*same_nan(zero, zero, a.lo), a)
     a, b = as_interval(a), as_interval(b)
-    return _make(a.lo - b.hi, a.hi - b.lo, a, b)
+    return make(a.lo - b.hi, a.hi - b.lo, a, b)
 
 
 def neg(a) -> Interval:
     a = as_interval(a)
-    return _make(-a.hi, -a.lo, a)
+    return make(-a.hi, -a.lo, a)
 
 
-def _times(u, v):
+def endpoint_product(u, v):
     """Endpoint product with 0 * inf = 0 (interval convention), NaN kept for empties."""
     p = u * v
     return jnp.where((u == 0) | (v == 0), jnp.zeros_like(p), p)
@@ -127,12 +129,13 @@ def mul(a, b) -> Interval:
     if a is b:
         return square(a)
     a, b = as_interval(a), as_interval(b)
-    p = (_times(a.lo, b.lo), _times(a.lo, b.hi), _times(a.hi, b.lo), _times(a.hi, b.hi))
+    p = (endpoint_product(a.lo, b.lo), endpoint_product(a.lo, b.hi),
+         endpoint_product(a.hi, b.lo), endpoint_product(a.hi, b.hi))
     lo = jnp.minimum(jnp.minimum(p[0], p[1]), jnp.minimum(p[2], p[3]))
     hi = jnp.maximum(jnp.maximum(p[0], p[1]), jnp.maximum(p[2], p[3]))
     # An empty factor times an exact 0 endpoint would give 0: keep it empty.
-    lo, hi = _same_nan(lo, hi, a.lo, b.lo)
-    return _make(lo, hi, a, b)
+    lo, hi = same_nan(lo, hi, a.lo, b.lo)
+    return make(lo, hi, a, b)
 
 
 def recip(a) -> Interval:
@@ -146,8 +149,8 @@ def recip(a) -> Interval:
     straddle = ((a.lo < 0) & (a.hi > 0)) | ((a.lo == 0) & (a.hi == 0))
     lo = jnp.where(straddle, -inf, lo)
     hi = jnp.where(straddle, inf, hi)
-    lo, hi = _same_nan(lo, hi, a.lo)
-    return _make(lo, hi, a, defined=~contains(a, 0.0))
+    lo, hi = same_nan(lo, hi, a.lo)
+    return make(lo, hi, a, defined=~contains(a, 0.0))
 
 
 def div(a, b) -> Interval:
@@ -157,32 +160,32 @@ def div(a, b) -> Interval:
     flagged undefined."""
     if a is b:  # x / x is 1 wherever it is defined
         return where(contains(a, 0.0), mul(a, recip(a)),
-                     _make(*_same_nan(jnp.ones_like(a.lo), jnp.ones_like(a.lo), a.lo), a))
+                     make(*same_nan(jnp.ones_like(a.lo), jnp.ones_like(a.lo), a.lo), a))
     a, b = as_interval(a), as_interval(b)
     r = recip(b)  # r.lo pairs with b.hi, r.hi with b.lo
 
     def quotient(u, v, r_end):
         direct = u / v
-        return jnp.where(jnp.isinf(r_end) | jnp.isnan(direct), _times(u, r_end), direct)
+        return jnp.where(jnp.isinf(r_end) | jnp.isnan(direct), endpoint_product(u, r_end), direct)
 
     q = (quotient(a.lo, b.hi, r.lo), quotient(a.lo, b.lo, r.hi),
          quotient(a.hi, b.hi, r.lo), quotient(a.hi, b.lo, r.hi))
     lo = jnp.minimum(jnp.minimum(q[0], q[1]), jnp.minimum(q[2], q[3]))
     hi = jnp.maximum(jnp.maximum(q[0], q[1]), jnp.maximum(q[2], q[3]))
-    lo, hi = _same_nan(lo, hi, a.lo, b.lo)
-    return _make(lo, hi, a, r)
+    lo, hi = same_nan(lo, hi, a.lo, b.lo)
+    return make(lo, hi, a, r)
 
 
 def abs(a) -> Interval:  # noqa: A001 - mirrors jnp.abs
     a = as_interval(a)
-    return _make(mig(a), mag(a), a)
+    return make(mig(a), mag(a), a)
 
 
 def square(a) -> Interval:
     """x**2 with the tight even rule: lower bound 0 when the interval straddles 0."""
     a = as_interval(a)
     lo_m, hi_m = mig(a), mag(a)
-    return _make(lo_m * lo_m, hi_m * hi_m, a)
+    return make(lo_m * lo_m, hi_m * hi_m, a)
 
 
 def ipow(a, n: int) -> Interval:
@@ -191,8 +194,8 @@ def ipow(a, n: int) -> Interval:
     a = as_interval(a)
     if n == 0:
         one = jnp.ones_like(a.lo)
-        lo, hi = _same_nan(one, one, a.lo)
-        return _make(lo, hi, a)
+        lo, hi = same_nan(one, one, a.lo)
+        return make(lo, hi, a)
     if n < 0:
         return recip(ipow(a, -n))
     if n == 1:
@@ -225,10 +228,10 @@ def pow(a, b) -> Interval:  # noqa: A001 - mirrors jnp.pow
         neg_base = a.lo < 0
         lo = jnp.where(neg_base, -jnp.inf, lo)
         hi = jnp.where(neg_base, jnp.inf, hi)
-        lo, hi = _same_nan(lo, hi, a.lo, b.lo)
-        return _make(lo, hi, a, b)
-    lo, hi = _same_nan(lo, hi, a_pos.lo, b.lo)
-    return _make(lo, hi, a_pos, b)
+        lo, hi = same_nan(lo, hi, a.lo, b.lo)
+        return make(lo, hi, a, b)
+    lo, hi = same_nan(lo, hi, a_pos.lo, b.lo)
+    return make(lo, hi, a_pos, b)
 
 
 sqrt = monotone_on(jnp.sqrt, lower=0.0)
@@ -258,31 +261,31 @@ def atan2(y, x) -> Interval:
     pi = jnp.float32(_PI)
     lo = jnp.where(cut, -pi, jnp.min(corners, axis=0))
     hi = jnp.where(cut, pi, jnp.max(corners, axis=0))
-    lo, hi = _same_nan(lo, hi, y.lo, x.lo)
-    return _make(lo, hi, y, x)
+    lo, hi = same_nan(lo, hi, y.lo, x.lo)
+    return make(lo, hi, y, x)
 
 
 # Beyond this magnitude the f32 position of an extremum (error ~|x| 1.5e-7) can miss
 # it by more than an ulp of 1 ((|x| 1.5e-7)^2 / 2); answer [-1, 1] there.
-_TRIG_MAX_ARG = 2.0**11
+TRIG_MAX_ARG = 2.0**11
 
 
 def periodic(fn, max_at: float, min_at: float, max_value: float, min_value: float,
              period: float = 2.0 * _PI):
     """Rule of a periodic function with one maximum `max_value` (at phase `max_at`) and
     one minimum (at `min_at`) per period: the endpoint values, widened to the extreme value wherever
-    the interval holds an extremum; the whole range beyond `_TRIG_MAX_ARG`."""
+    the interval holds an extremum; the whole range beyond `TRIG_MAX_ARG`."""
 
     def rule(a) -> Interval:
         a = as_interval(a)
         f_lo, f_hi = fn(a.lo), fn(a.hi)
         lo, hi = jnp.minimum(f_lo, f_hi), jnp.maximum(f_lo, f_hi)
         has = lambda phase: jnp.ceil((a.lo - phase) / period) * period + phase <= a.hi  # noqa: E731
-        wide = ~((a.hi - a.lo) < period) | (mag(a) > _TRIG_MAX_ARG)
+        wide = ~((a.hi - a.lo) < period) | (mag(a) > TRIG_MAX_ARG)
         hi = jnp.where(has(max_at) | wide, max_value, hi)
         lo = jnp.where(has(min_at) | wide, min_value, lo)
-        lo, hi = _same_nan(lo, hi, a.lo, a.hi)
-        return _make(lo, hi, a)
+        lo, hi = same_nan(lo, hi, a.lo, a.hi)
+        return make(lo, hi, a)
 
     return rule
 
@@ -303,21 +306,21 @@ def tan(a) -> Interval:
     # f32 multiples of pi drift from the true poles; tan itself jumping from + to - is
     # the robust sign that a pole lies between the endpoints.
     pole = ((k_lo != k_hi) | (t_hi < t_lo) | ~((a.hi - a.lo) < _PI)
-            | (mag(a) > _TRIG_MAX_ARG))
+            | (mag(a) > TRIG_MAX_ARG))
     lo = jnp.where(pole, -jnp.inf, t_lo)
     hi = jnp.where(pole, jnp.inf, t_hi)
-    lo, hi = _same_nan(lo, hi, a.lo, a.hi)
-    return _make(lo, hi, a)
+    lo, hi = same_nan(lo, hi, a.lo, a.hi)
+    return make(lo, hi, a)
 
 
 def minimum(a, b) -> Interval:
     a, b = as_interval(a), as_interval(b)
-    return _make(jnp.minimum(a.lo, b.lo), jnp.minimum(a.hi, b.hi), a, b)
+    return make(jnp.minimum(a.lo, b.lo), jnp.minimum(a.hi, b.hi), a, b)
 
 
 def maximum(a, b) -> Interval:
     a, b = as_interval(a), as_interval(b)
-    return _make(jnp.maximum(a.lo, b.lo), jnp.maximum(a.hi, b.hi), a, b)
+    return make(jnp.maximum(a.lo, b.lo), jnp.maximum(a.hi, b.hi), a, b)
 
 
 def clamp(lower, x, upper) -> Interval:
@@ -353,8 +356,8 @@ def fmod(a, b) -> Interval:
     # fmod by 0 is undefined: a zero divisor is dropped and flagged, [0, 0] is empty.
     divisor_zero = (b.lo <= 0) & (b.hi >= 0)
     only_zero = jnp.where((b.lo == 0) & (b.hi == 0), jnp.nan, 0.0)
-    lo, hi = _same_nan(lo, hi, a.lo, b.lo, only_zero)
-    return _make(lo, hi, a, b, defined=~divisor_zero)
+    lo, hi = same_nan(lo, hi, a.lo, b.lo, only_zero)
+    return make(lo, hi, a, b, defined=~divisor_zero)
 
 
 
@@ -379,4 +382,4 @@ def widen(a: Interval, ulps: float = 1.0, scale=None) -> Interval:
 
 
 
-Interval._ops = sys.modules[__name__]
+Interval.ops = sys.modules[__name__]

@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ._interval_type import Interval, _make, as_interval
+from ._interval_type import Interval, as_interval, make
 
 
 def _truth(certain, possible, *parents) -> Interval:
-    return _make(certain, possible, *parents)
+    return make(certain, possible, *parents)
 
 
 def lt(a, b) -> Interval:

@@ -11,33 +11,36 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+# Package-internal, shared by arith's modules (not API): `make`, `same_nan` and the
+# operators' module `OperatorsMixin.ops`.
+
 
 class OperatorsMixin:
-    """Python operators dispatching to the pure functions of the module in `_ops`
+    """Python operators dispatching to the pure functions of the module in `ops`
     (shared by `Interval` and `Affine`; comparisons are three-valued)."""
 
-    _ops = None  # the arithmetic module; set after it is defined
+    ops = None  # the arithmetic module; set after it is defined
 
-    def __add__(self, o): return self._ops.add(self, o)
-    def __radd__(self, o): return self._ops.add(o, self)
-    def __sub__(self, o): return self._ops.sub(self, o)
-    def __rsub__(self, o): return self._ops.sub(o, self)
-    def __mul__(self, o): return self._ops.mul(self, o)
-    def __rmul__(self, o): return self._ops.mul(o, self)
-    def __truediv__(self, o): return self._ops.div(self, o)
-    def __rtruediv__(self, o): return self._ops.div(o, self)
-    def __neg__(self): return self._ops.neg(self)
+    def __add__(self, o): return self.ops.add(self, o)
+    def __radd__(self, o): return self.ops.add(o, self)
+    def __sub__(self, o): return self.ops.sub(self, o)
+    def __rsub__(self, o): return self.ops.sub(o, self)
+    def __mul__(self, o): return self.ops.mul(self, o)
+    def __rmul__(self, o): return self.ops.mul(o, self)
+    def __truediv__(self, o): return self.ops.div(self, o)
+    def __rtruediv__(self, o): return self.ops.div(o, self)
+    def __neg__(self): return self.ops.neg(self)
     def __pos__(self): return self
-    def __abs__(self): return self._ops.abs(self)
-    def __lt__(self, o): return self._ops.lt(self, o)
-    def __le__(self, o): return self._ops.le(self, o)
-    def __gt__(self, o): return self._ops.gt(self, o)
-    def __ge__(self, o): return self._ops.ge(self, o)
+    def __abs__(self): return self.ops.abs(self)
+    def __lt__(self, o): return self.ops.lt(self, o)
+    def __le__(self, o): return self.ops.le(self, o)
+    def __gt__(self, o): return self.ops.gt(self, o)
+    def __ge__(self, o): return self.ops.ge(self, o)
 
     def __pow__(self, exponent):
         if isinstance(exponent, (int, np.integer)):
-            return self._ops.ipow(self, int(exponent))
-        return self._ops.pow(self, exponent)
+            return self.ops.ipow(self, int(exponent))
+        return self.ops.pow(self, exponent)
 
     def __bool__(self):
         raise TypeError(f"a {type(self).__name__} has no single truth value; use "
@@ -91,12 +94,12 @@ class Interval(OperatorsMixin):
         return f"Interval(lo={self.lo!r}, hi={self.hi!r}, defined={self.defined!r})"
 
     # three-valued logic (comparisons and arithmetic come from OperatorsMixin)
-    def __and__(self, other): return self._ops.logical_and(self, other)
-    def __rand__(self, other): return self._ops.logical_and(other, self)
-    def __or__(self, other): return self._ops.logical_or(self, other)
-    def __ror__(self, other): return self._ops.logical_or(other, self)
-    def __invert__(self): return self._ops.logical_not(self)
-    def __rpow__(self, base): return self._ops.pow(base, self)
+    def __and__(self, other): return self.ops.logical_and(self, other)
+    def __rand__(self, other): return self.ops.logical_and(other, self)
+    def __or__(self, other): return self.ops.logical_or(self, other)
+    def __ror__(self, other): return self.ops.logical_or(other, self)
+    def __invert__(self): return self.ops.logical_not(self)
+    def __rpow__(self, base): return self.ops.pow(base, self)
 
 
 def _bcast(x, like: Interval):
@@ -149,7 +152,7 @@ def empty(shape=(), dtype=jnp.float32) -> Interval:
     return Interval(nan, nan, jnp.zeros(shape, bool))
 
 
-def _make(lo, hi, *parents: Interval, defined=None) -> Interval:
+def make(lo, hi, *parents: Interval, defined=None) -> Interval:
     """Result interval whose `defined` flag is the AND of its parents' (and `defined`)."""
     flag = defined
     for p in parents:
@@ -161,7 +164,7 @@ def _make(lo, hi, *parents: Interval, defined=None) -> Interval:
     return Interval(lo, hi, flag)
 
 
-def _same_nan(lo, hi, *srcs):
+def same_nan(lo, hi, *srcs):
     """Propagate emptiness of `srcs` into both endpoints (one mechanism for all rules)."""
     bad = None
     for s in srcs:
@@ -213,15 +216,15 @@ def is_empty(x: Interval):
 def hull(a, b) -> Interval:
     """Smallest interval containing both (empty is the identity)."""
     a, b = as_interval(a), as_interval(b)
-    return _make(jnp.fmin(a.lo, b.lo), jnp.fmax(a.hi, b.hi), a, b)
+    return make(jnp.fmin(a.lo, b.lo), jnp.fmax(a.hi, b.hi), a, b)
 
 
 def intersect(a, b) -> Interval:
     """Intersection; empty (NaN) where the two are disjoint."""
     a, b = as_interval(a), as_interval(b)
     lo, hi = jnp.maximum(a.lo, b.lo), jnp.minimum(a.hi, b.hi)
-    lo, hi = _same_nan(lo, hi, jnp.where(lo > hi, jnp.nan, 0.0))
-    return _make(lo, hi, a, b)
+    lo, hi = same_nan(lo, hi, jnp.where(lo > hi, jnp.nan, 0.0))
+    return make(lo, hi, a, b)
 
 
 # --------------------------------------------------------------------- rule builders
@@ -232,7 +235,7 @@ def monotone_increasing(fn):
 
     def rule(x):
         x = as_interval(x)
-        return _make(fn(x.lo), fn(x.hi), x)
+        return make(fn(x.lo), fn(x.hi), x)
 
     return rule
 
@@ -242,7 +245,7 @@ def monotone_decreasing(fn):
 
     def rule(x):
         x = as_interval(x)
-        return _make(fn(x.hi), fn(x.lo), x)
+        return make(fn(x.hi), fn(x.lo), x)
 
     return rule
 
@@ -252,7 +255,7 @@ def even(fn):
 
     def rule(x):
         x = as_interval(x)
-        return _make(fn(mig(x)), fn(mag(x)), x)
+        return make(fn(mig(x)), fn(mag(x)), x)
 
     return rule
 
@@ -262,8 +265,8 @@ def restrict(x: Interval, lower=-jnp.inf, upper=jnp.inf) -> Interval:
     x = as_interval(x)
     inside = (x.lo >= lower) & (x.hi <= upper)
     lo, hi = jnp.maximum(x.lo, lower), jnp.minimum(x.hi, upper)
-    lo, hi = _same_nan(lo, hi, jnp.where(lo > hi, jnp.nan, 0.0))
-    return _make(lo, hi, x, defined=inside)
+    lo, hi = same_nan(lo, hi, jnp.where(lo > hi, jnp.nan, 0.0))
+    return make(lo, hi, x, defined=inside)
 
 
 def monotone_on(fn, lower=-jnp.inf, upper=jnp.inf, increasing=True):

@@ -25,7 +25,7 @@ def is_lifted(x) -> bool:
 
 def as_range(x) -> Interval:
     """The Interval enclosing x: an Affine's (padded) range, a constant as a point."""
-    return aa._range(x) if isinstance(x, Affine) else ia.as_interval(x)
+    return aa.padded_range(x) if isinstance(x, Affine) else ia.as_interval(x)
 
 
 def shape_of(x) -> tuple:
@@ -122,7 +122,7 @@ def lift_param(p, arithmetic: str, n: int):
     if arithmetic == "affine" and isinstance(p, Interval):
         return aa.from_interval(p, None, n)
     if arithmetic == "interval" and isinstance(p, Affine):
-        return aa._range(p)
+        return aa.padded_range(p)
     return p
 
 

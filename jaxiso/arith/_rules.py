@@ -141,7 +141,7 @@ def _drop_params(rule):
 def _elementwise(name, ia_rule, aa_rule=None, **fields):
     """A primitive whose rules ignore its params; the affine rule defaults to the
     interval rule on the affine range (correlation not kept)."""
-    aa_rule = aa._via_interval(ia_rule) if aa_rule is None else aa_rule
+    aa_rule = aa.via_interval(ia_rule) if aa_rule is None else aa_rule
     RULES[name] = Rule(_drop_params(ia_rule), _drop_params(aa_rule), **fields)
 
 
@@ -152,7 +152,7 @@ def _monotone_with_params(name, fn):
         return ia.monotone_increasing(lambda v: fn(v, **params))(x)
 
     def affine_rule(x, **params):
-        return aa._via_interval(ia.monotone_increasing(lambda v: fn(v, **params)))(x)
+        return aa.via_interval(ia.monotone_increasing(lambda v: fn(v, **params)))(x)
 
     RULES[name] = Rule(interval_rule, affine_rule)
 
@@ -276,4 +276,4 @@ NAMED_CALLS["floor_divide"] = Rule(ar.floor_divide_interval, ar.floor_divide_aff
 # jnp.trunc: its body is where(x < 0, ceil, floor), the hull [-1, 1] on a box across 0
 # where trunc is 0; trunc itself is non-decreasing
 _trunc = ia.monotone_increasing(jnp.trunc)
-NAMED_CALLS["trunc"] = Rule(_trunc, aa._via_interval(_trunc))
+NAMED_CALLS["trunc"] = Rule(_trunc, aa.via_interval(_trunc))

@@ -30,7 +30,8 @@ from jax import lax
 from .._core import pytree_dataclass, static_field
 from . import _affine as aa
 from . import _interval as ia
-from ._affine_type import Affine, _range
+from ._affine_type import Affine
+from ._affine_type import padded_range as _range
 from ._interval import Interval
 
 __all__ = ["OPS", "Tape", "assemble", "from_function", "evaluate", "prune", "allocate",
