@@ -24,8 +24,6 @@ ALLOWED_PRIVATE = {
     ("implicit/_tape_rays.py", "_histogram"),
     ("implicit/_auto.py", "_eval"),
     ("implicit/program.py", "_tidy"),
-    # render/_distributed.py belongs to another change (it should call `_plan.prepare`)
-    ("render/_distributed.py", "_check_scene"),
 }
 
 # functions longer than MAX_LINES, left to shorten (file, name)

@@ -28,8 +28,8 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .._core import Hits, Plan, Rays
-from ._plan import _check_scene, check_plan, intersect_traced, plan_for
 from ._plan import intersect as _intersect_local
+from ._plan import intersect_traced, prepare
 
 __all__ = ["process_mesh", "spans_processes", "to_global", "to_host", "mesh_of",
            "intersect", "replicated"]
@@ -164,14 +164,13 @@ def intersect(scene, rays: Rays, *, t_min=0.0, t_max=jnp.inf, plan: Plan | None 
     if mesh is None or not isinstance(rays, Rays) or math.prod(rays.shape) == 0:
         # the local call (and its checks: not rays, an empty batch)
         return _intersect_local(scene, rays, t_min=t_min, t_max=t_max, plan=plan)
-    _check_scene(scene)
     shape = rays.shape
-    plan = plan_for(scene, -(-math.prod(shape) // mesh.devices.size)) if plan is None \
-        else plan
-    if not isinstance(plan, Plan) or plan.tape:
+    # the preparation `intersect` and `render` do: the scene checked and prepared, the
+    # plan (default: for the rays of one device) checked
+    scene, plan = prepare(scene, -(-math.prod(shape) // mesh.devices.size), plan)
+    if plan.tape:
         raise TypeError(f"plan must be a jaxiso.Plan without tape (a long program's tape "
                         f"runs on one process's host) on a mesh, got {plan!r}")
-    check_plan(plan, scene)
     t_min = jnp.broadcast_to(jnp.asarray(t_min, jnp.float32), shape)
     t_max = jnp.broadcast_to(jnp.asarray(t_max, jnp.float32), shape)
     args = to_global((scene, rays, t_min, t_max), mesh)

@@ -200,6 +200,3 @@ def from_tiles(x, tile: int, height: int, width: int):
     x = jnp.moveaxis(x, 1, 2)
     x = x.reshape((th * tile, tw * tile) + x.shape[4:])
     return x[:height, :width]
-
-
-_check_scene = check_scene  # old name, still imported by render/_distributed.py (its owner renames)
