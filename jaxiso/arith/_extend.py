@@ -158,76 +158,96 @@ def extend(f: Callable, arithmetic: str = "interval", rounding: str = "fast",
         raise TypeError(f"extend needs a callable, got {type(f).__name__}")
     if fresh_symbols and arithmetic != "affine":
         raise ValueError("fresh_symbols needs arithmetic='affine'")
-    ctx = _Context(arithmetic, rounding == "outward")
-    cache = {}
-
-    def trace(coords, param_leaves, param_tree):
-        key = (tuple(_lift.point_dtype(c) for c in coords), param_tree,
-               tuple(_lift.param_aval(p) for p in param_leaves))
-        if key not in cache:
-            n_c = len(coords)
-
-            def flat_f(*leaves):
-                params = jax.tree_util.tree_unflatten(param_tree, leaves[n_c:])
-                args = leaves[:n_c] if params is None else (*leaves[:n_c], params)
-                return f(*args)
-
-            avals = [jax.ShapeDtypeStruct((), dt) for dt in key[0]] + list(key[2])
-            closed = jax.make_jaxpr(flat_f)(*avals)
-            _check_output(closed, f)
-            cache[key] = closed
-        return cache[key]
-
-    used_fresh: dict = {}  # (jaxpr, coordinate kinds) -> fresh symbols the operations take
+    extension = _Extension(f, arithmetic, _Context(arithmetic, rounding == "outward"),
+                           n_symbols, fresh_symbols, fresh_per_op)
 
     @functools.wraps(f)
     def F(*coords, params=None):
+        return extension(coords, params)
+
+    return F
+
+
+class _Extension:
+    """`extend`'s F: f's jaxpr (traced once per input signature) evaluated on lifted
+    coordinates, vmapped over their flattened batch."""
+
+    def __init__(self, f, arithmetic, ctx, n_symbols, fresh_symbols, fresh_per_op):
+        self.f, self.arithmetic, self.ctx = f, arithmetic, ctx
+        self.n_symbols, self.fresh_symbols = n_symbols, fresh_symbols
+        self.fresh_per_op = fresh_per_op
+        self.cache = {}  # input signature -> f's closed jaxpr
+        self.used_fresh = {}  # (jaxpr, coordinate kinds) -> fresh symbols operations take
+
+    def __call__(self, coords, params):
         if not coords:
             raise TypeError("F needs at least one coordinate (x, y, z, ...)")
         for i, c in enumerate(coords):
             _lift.check_coordinate(c, i)
         param_leaves, param_tree = jax.tree_util.tree_flatten(params, is_leaf=is_lifted)
-        closed = trace(coords, param_leaves, param_tree)
-        lifted = _lift.lift_coordinates(coords, arithmetic, ctx.outward, n_symbols)
+        closed = self.trace(coords, param_leaves, param_tree)
+        lifted = _lift.lift_coordinates(coords, self.arithmetic, self.ctx.outward,
+                                        self.n_symbols)
         batch = np.broadcast_shapes(*[shape_of(c) for c in lifted])
         size = math.prod(batch)
         flat = [_lift.reshape(_lift.broadcast(c, batch), (size,)) for c in lifted]
 
         def run(flat, fresh):
-            """F on the flat batch with `fresh` more symbols (all of them handed out to
-            the operations' error terms); returns (out, symbols handed out)."""
-            flat = [aa.with_symbols(c, c.n + fresh) if isinstance(c, Affine) else c
-                    for c in flat]
-            n = flat[0].n if arithmetic == "affine" else 0
-            params_in = [_lift.lift_param(p, arithmetic, n) for p in param_leaves]
-            symbols = _FreshSymbols(n - fresh, n, fresh_per_op) if fresh else None
+            return self.run(closed, param_leaves, flat, fresh)
 
-            def eval_point(point_coords):
-                run_ctx = dataclasses.replace(ctx, fresh=symbols if fresh else None,
-                                              signs={} if arithmetic == "affine" else None)
-                out = _eval_jaxpr(closed.jaxpr, closed.consts,
-                                  [*point_coords, *params_in], run_ctx)[0]
-                return _lift.as_result(out, point_coords, arithmetic)
-
-            return jax.vmap(eval_point)(flat), 0 if symbols is None else symbols.handed_out
-
-        fresh = fresh_symbols
-        if fresh_symbols:
+        fresh = self.fresh_symbols
+        if self.fresh_symbols:
             # the budget is a cap: the forms carry only the symbols the program's
             # operations take (a dry run counts them), as each one costs in every form
             # per point: the count depends on the program and which coordinates are
             # forms, not on the batch's size (`cache` keeps `closed` alive: ids hold)
             key = (id(closed), tuple(isinstance(c, Affine) for c in flat))
-            if key not in used_fresh:
-                used_fresh[key] = _count_fresh(run, flat, fresh_symbols)
-            fresh = used_fresh[key]
+            if key not in self.used_fresh:
+                self.used_fresh[key] = _count_fresh(run, flat, self.fresh_symbols)
+            fresh = self.used_fresh[key]
         out = run(flat, fresh)[0]
         # outward affine: one more ulp so that the caller's to_interval (centre +- rad,
         # rounded to nearest) still encloses
-        out = _round(ctx, out, 1.0) if isinstance(out, Affine) else out
+        out = _round(self.ctx, out, 1.0) if isinstance(out, Affine) else out
         return _lift.reshape(out, batch)
 
-    return F
+    def trace(self, coords, param_leaves, param_tree):
+        """f's closed jaxpr on scalar points of the coordinates' dtypes and the params'
+        avals (cached)."""
+        key = (tuple(_lift.point_dtype(c) for c in coords), param_tree,
+               tuple(_lift.param_aval(p) for p in param_leaves))
+        if key not in self.cache:
+            n_c = len(coords)
+
+            def flat_f(*leaves):
+                params = jax.tree_util.tree_unflatten(param_tree, leaves[n_c:])
+                args = leaves[:n_c] if params is None else (*leaves[:n_c], params)
+                return self.f(*args)
+
+            avals = [jax.ShapeDtypeStruct((), dt) for dt in key[0]] + list(key[2])
+            closed = jax.make_jaxpr(flat_f)(*avals)
+            _check_output(closed, self.f)
+            self.cache[key] = closed
+        return self.cache[key]
+
+    def run(self, closed, param_leaves, flat, fresh):
+        """F on the flat batch with `fresh` more symbols (all of them handed out to the
+        operations' error terms); returns (out, symbols handed out)."""
+        arithmetic, ctx = self.arithmetic, self.ctx
+        flat = [aa.with_symbols(c, c.n + fresh) if isinstance(c, Affine) else c
+                for c in flat]
+        n = flat[0].n if arithmetic == "affine" else 0
+        params_in = [_lift.lift_param(p, arithmetic, n) for p in param_leaves]
+        symbols = _FreshSymbols(n - fresh, n, self.fresh_per_op) if fresh else None
+
+        def eval_point(point_coords):
+            run_ctx = dataclasses.replace(ctx, fresh=symbols if fresh else None,
+                                          signs={} if arithmetic == "affine" else None)
+            out = _eval_jaxpr(closed.jaxpr, closed.consts,
+                              [*point_coords, *params_in], run_ctx)[0]
+            return _lift.as_result(out, point_coords, arithmetic)
+
+        return jax.vmap(eval_point)(flat), 0 if symbols is None else symbols.handed_out
 
 
 def _count_fresh(run, flat, cap: int) -> int:

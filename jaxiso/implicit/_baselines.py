@@ -31,6 +31,8 @@ packet, in float32.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -172,65 +174,102 @@ def mitchell(g, scene, p, D, inside, eps, arithmetic="interval", rounding="fast"
         max_steps = 64 * _bisect.MAX_DEPTH
     length = jnp.linalg.norm(D, axis=-1)
     d_max = _bisect.depth_for(length, eps)
-    iso = scene.isovalues
-    NONE, DEPTH, BRACKET = 0, 1, 2
+    field = _Inclusions(g, scene, F, H, arithmetic)
 
     def one(p, D, d_max, length, active):
-        def cond(st):
-            k, d, done, kind, steps, evals = st
-            return ~done & (steps < max_steps)
-
-        def body(st):
-            k, d, done, kind, steps, evals = st
-            s0, s1 = _bisect.piece(k, d)
-            boxes = ray_boxes(p, D, s0, s1, arithmetic)
-            r = enclosure(F, boxes, scene.w, scene.params, arithmetic)
-            possible, finite = contains_any(r, iso)
-            cand = possible & finite
-            if H is None:
-                monotone = jnp.bool_(False)
-            else:
-                hr = H(*boxes, scene.w, D[0], D[1], D[2], params=scene.params)
-                hr = aa.to_interval(hr) if isinstance(hr, Affine) else hr
-                monotone = (jnp.isfinite(hr.hi - hr.lo) & hr.defined
-                            & ((hr.lo > 0) | (hr.hi < 0)))
-            va = _point_value(g, scene, p, D, s0)
-            vb = _point_value(g, scene, p, D, s1)
-            _, crossing = _first_crossed(va, vb, iso)
-            isolated = cand & monotone & jnp.isfinite(va) & jnp.isfinite(vb)
-            bracket = isolated & crossing
-            depth_hit = cand & ~isolated & (d >= d_max)
-            stop = bracket | depth_hit
-            descend = possible & ~isolated & ~depth_hit & (d < d_max)
-            k, d, finished = _bisect.advance(k, d, stop, descend)
-            kind = jnp.where(bracket, BRACKET, jnp.where(depth_hit, DEPTH, NONE))
-            n_eval = 1 + (possible & (H is not None)).astype(jnp.int32)
-            return k, d, done | finished, kind.astype(jnp.int32), steps + 1, evals + n_eval
-
-        init = (jnp.int32(0), jnp.int32(0), ~active, jnp.int32(NONE), jnp.int32(0),
-                jnp.int32(0))
-        k, d, done, kind, steps, evals = lax.while_loop(cond, body, init)
-        kind = jnp.where(done & active, kind, NONE)
-        s0, s1 = _bisect.piece(k, d)
-
-        # refine an isolated bracket on points
-        va = _point_value(g, scene, p, D, s0)
-        vb = _point_value(g, scene, p, D, s1)
-        which, _ = _first_crossed(va, vb, iso)
-        level = iso[which]
-
-        def val(s):
-            return _point_value(g, scene, p, D, s) - level
-
-        is_bracket = kind == BRACKET
-        s_ref, n_ref = _refine(val, s0, jnp.where(is_bracket, s1, s0), va - level,
-                               vb - level, length, eps, refine_steps, falsi=True)
-        hit = kind != NONE
-        s = jnp.where(is_bracket, s_ref, 0.5 * (s0 + s1))
-        s = jnp.where(hit, s, jnp.inf)
-        return _bisect.Result(s, hit, evals + n_ref)
+        k, d, kind, evals = _isolate(field, p, D, d_max, active, max_steps)
+        return _refine_piece(field, p, D, k, d, kind, evals, length, eps, refine_steps)
 
     return jax.vmap(one)(p, D, d_max, length, inside)
+
+
+# how a ray's march ended (`mitchell`): no hit, a piece at the eps depth, an isolated bracket
+_NONE, _DEPTH, _BRACKET = 0, 1, 2
+
+
+class _Inclusions(NamedTuple):
+    """What `mitchell` evaluates: the point function g, its inclusion F and that of its
+    directional derivative H (None: none), in `arithmetic`, at the scene's w and params."""
+    g: Callable
+    scene: object
+    F: Callable
+    H: Callable | None
+    arithmetic: str
+
+
+def _isolate(field, p, D, d_max, active, max_steps):
+    """The stackless march of one ray (p, D: [3]) to its first isolated bracket or
+    eps-depth piece: (k, d, kind, evals), kind `_NONE` where it found neither."""
+    def cond(st):
+        k, d, done, kind, steps, evals = st
+        return ~done & (steps < max_steps)
+
+    def body(st):
+        return _march_step(field, p, D, d_max, st)
+
+    init = (jnp.int32(0), jnp.int32(0), ~active, jnp.int32(_NONE), jnp.int32(0),
+            jnp.int32(0))
+    k, d, done, kind, steps, evals = lax.while_loop(cond, body, init)
+    return k, d, jnp.where(done & active, kind, _NONE), evals
+
+
+def _march_step(field, p, D, d_max, st):
+    """One piece (k, d) of the march: rejected, descended into, or stopped at (an
+    isolated bracket, or a possible piece at the eps depth)."""
+    g, scene, F, H, arithmetic = field
+    k, d, done, kind, steps, evals = st
+    iso = scene.isovalues
+    s0, s1 = _bisect.piece(k, d)
+    boxes = ray_boxes(p, D, s0, s1, arithmetic)
+    r = enclosure(F, boxes, scene.w, scene.params, arithmetic)
+    possible, finite = contains_any(r, iso)
+    cand = possible & finite
+    monotone = _monotone(H, boxes, scene, D)
+    va = _point_value(g, scene, p, D, s0)
+    vb = _point_value(g, scene, p, D, s1)
+    _, crossing = _first_crossed(va, vb, iso)
+    isolated = cand & monotone & jnp.isfinite(va) & jnp.isfinite(vb)
+    bracket = isolated & crossing
+    depth_hit = cand & ~isolated & (d >= d_max)
+    stop = bracket | depth_hit
+    descend = possible & ~isolated & ~depth_hit & (d < d_max)
+    k, d, finished = _bisect.advance(k, d, stop, descend)
+    kind = jnp.where(bracket, _BRACKET, jnp.where(depth_hit, _DEPTH, _NONE))
+    n_eval = 1 + (possible & (H is not None)).astype(jnp.int32)
+    return k, d, done | finished, kind.astype(jnp.int32), steps + 1, evals + n_eval
+
+
+def _monotone(H, boxes, scene, D):
+    """g is monotone on the piece: the derivative's inclusion H along D on `boxes` is
+    bounded and excludes 0 (False without H)."""
+    if H is None:
+        return jnp.bool_(False)
+    hr = H(*boxes, scene.w, D[0], D[1], D[2], params=scene.params)
+    hr = aa.to_interval(hr) if isinstance(hr, Affine) else hr
+    return jnp.isfinite(hr.hi - hr.lo) & hr.defined & ((hr.lo > 0) | (hr.hi < 0))
+
+
+def _refine_piece(field, p, D, k, d, kind, evals, length, eps, refine_steps):
+    """The ray's `_bisect.Result` from where its march ended: an isolated bracket refined
+    on points (regula falsi), an eps-depth piece's midpoint, or no hit."""
+    g, scene = field.g, field.scene
+    iso = scene.isovalues
+    s0, s1 = _bisect.piece(k, d)
+    va = _point_value(g, scene, p, D, s0)
+    vb = _point_value(g, scene, p, D, s1)
+    which, _ = _first_crossed(va, vb, iso)
+    level = iso[which]
+
+    def val(s):
+        return _point_value(g, scene, p, D, s) - level
+
+    is_bracket = kind == _BRACKET
+    s_ref, n_ref = _refine(val, s0, jnp.where(is_bracket, s1, s0), va - level,
+                           vb - level, length, eps, refine_steps, falsi=True)
+    hit = kind != _NONE
+    s = jnp.where(is_bracket, s_ref, 0.5 * (s0 + s1))
+    s = jnp.where(hit, s, jnp.inf)
+    return _bisect.Result(s, hit, evals + n_ref)
 
 
 # ------------------------------------------------------------------------- sampling

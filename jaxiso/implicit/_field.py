@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import functools
 import inspect
+from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -231,74 +233,94 @@ def root_check(g, w, params, isovalues, policy: str):
     if policy == "none":
         return None
     iso = jnp.asarray(isovalues)
-    value = on_points(g)
-    value_grad = on_points(jax.value_and_grad(g, argnums=(0, 1, 2)))
+    field = _PieceField(on_points(g), on_points(jax.value_and_grad(g, argnums=(0, 1, 2))),
+                        w, params, iso)
+    return functools.partial(_verify, field, policy)
 
-    def verify(p, D, s0, s1, parts=None):
-        """bool [...]; with `parts` (a power of two), the piece cut into that many equal
-        parts: (ok, part) [...], part the first with a sign change, -1 where only the
-        whole piece touches (the parts are not tested for touching)."""
-        n = 1 if parts is None else parts
-        # a piece at an end of the segment looks half a part past it: a root on the
-        # box's face (a step of floor exactly there, with the entry point rounded
-        # inside) shows whichever side rounding puts it
-        half = 0.5 * (s1 - s0) / n
-        frac = jnp.arange(n + 1, dtype=jnp.float32) / n
-        s = s0[..., None] + (s1 - s0)[..., None] * frac  # exact for dyadic pieces
-        s = s.at[..., 0].set(jnp.where(s0 <= 0, s0 - half, s0))
-        s = s.at[..., n].set(jnp.where(s1 >= 1, s1 + half, s1))
-        f, change = sign_changes(p, D, s)
-        ok = jnp.any(change, axis=-1)
-        part = jnp.argmax(change, axis=-1)
-        # no sign change at the parts' ends: look closer around the point nearest a level
-        # (a feature thinner than a part, e.g. birdcage_occ's bars, falls between them)
-        lowest = jnp.argmin(jnp.min(jnp.abs(f), axis=-1), axis=-1)
-        first = jnp.clip(lowest - 1, 0, max(n - 2, 0))
-        last = jnp.minimum(first + 2, n)
-        at = functools.partial(jnp.take_along_axis, s, axis=-1)
-        dipped, sub, touched = _only_where(~ok, closer, p, D, s0, s1,
-                                           at(first[..., None])[..., 0],
-                                           at(last[..., None])[..., 0])
-        part = jnp.where(ok, part, first + (sub * (last - first)) // CLOSER_PARTS)
-        ok = ok | dipped
-        if parts is None:
-            return ok | touched
-        return ok | touched, jnp.where(ok, part, -1)
 
-    def closer(p, D, s0, s1, a, b):
-        """A piece without a sign change at its parts' ends, looked at closer: `dip` on
-        [a, b], and the touching test (policy "sign+distance") on the piece."""
-        dipped, sub = dip(p, D, a, b)
-        touched = (touching(p, D, s0, s1) if policy == "sign+distance"
-                   else jnp.zeros_like(dipped))
-        return dipped, sub, touched
+class _PieceField(NamedTuple):
+    """g - iso at points of ray pieces, for `root_check`'s tests: value and value_grad
+    are g and (g, grad g) through `on_points`, at w and params."""
+    value: Callable
+    value_grad: Callable
+    w: object
+    params: object
+    iso: jax.Array
 
-    def dip(p, D, a, b):
-        """(ok, sub): the first of CLOSER_PARTS equal parts of [a, b] whose ends' signs
-        differ."""
-        frac = jnp.arange(CLOSER_PARTS + 1, dtype=jnp.float32) / CLOSER_PARTS
-        _, change = sign_changes(p, D, a[..., None] + (b - a)[..., None] * frac)
-        return jnp.any(change, axis=-1), jnp.argmax(change, axis=-1)
-
-    def sign_changes(p, D, s):
+    def sign_changes(self, p, D, s):
         """g - iso [..., m, n_iso] at the points p + D s (s [..., m]), and where it
         changes sign between neighbours [..., m - 1] (`changes_sign`)."""
         q = p[..., None, :] + D[..., None, :] * s[..., None]
-        f = value(q[..., 0], q[..., 1], q[..., 2], w, params)[..., None] - iso
+        f = self.value(q[..., 0], q[..., 1], q[..., 2], self.w, self.params)[..., None] \
+            - self.iso
         return f, changes_sign(f)
 
-    def touching(p, D, s0, s1):
-        m = p + D * (0.5 * (s0 + s1))[..., None]
-        fm, grad = at_points(m)
-        level = iso[jnp.argmin(jnp.abs(fm[..., None] - iso), axis=-1)]
-        length = jnp.linalg.norm(D, axis=-1) * (s1 - s0)
-        return touches(at_points, m, fm, grad, level, length)
-
-    def at_points(q):
-        value, grad = value_grad(q[..., 0], q[..., 1], q[..., 2], w, params)
+    def at_points(self, q):
+        """(g, grad g [..., 3]) at points q [..., 3]."""
+        value, grad = self.value_grad(q[..., 0], q[..., 1], q[..., 2], self.w, self.params)
         return value, jnp.stack(grad, axis=-1)
 
-    return verify
+
+def _verify(field, policy, p, D, s0, s1, parts=None):
+    """`root_check`'s verify: bool [...]; with `parts` (a power of two), the piece cut
+    into that many equal parts: (ok, part) [...], part the first with a sign change, -1
+    where only the whole piece touches (the parts are not tested for touching)."""
+    n = 1 if parts is None else parts
+    s = _part_ends(s0, s1, n)
+    f, change = field.sign_changes(p, D, s)
+    ok = jnp.any(change, axis=-1)
+    part = jnp.argmax(change, axis=-1)
+    # no sign change at the parts' ends: look closer around the point nearest a level
+    # (a feature thinner than a part, e.g. birdcage_occ's bars, falls between them)
+    lowest = jnp.argmin(jnp.min(jnp.abs(f), axis=-1), axis=-1)
+    first = jnp.clip(lowest - 1, 0, max(n - 2, 0))
+    last = jnp.minimum(first + 2, n)
+    at = functools.partial(jnp.take_along_axis, s, axis=-1)
+    dipped, sub, touched = _only_where(~ok, functools.partial(_closer, field, policy),
+                                       p, D, s0, s1, at(first[..., None])[..., 0],
+                                       at(last[..., None])[..., 0])
+    part = jnp.where(ok, part, first + (sub * (last - first)) // CLOSER_PARTS)
+    ok = ok | dipped
+    if parts is None:
+        return ok | touched
+    return ok | touched, jnp.where(ok, part, -1)
+
+
+def _part_ends(s0, s1, n):
+    """The ends [..., n + 1] of n equal parts of [s0, s1]. A piece at an end of the
+    segment looks half a part past it: a root on the box's face (a step of floor exactly
+    there, with the entry point rounded inside) shows whichever side rounding puts it."""
+    half = 0.5 * (s1 - s0) / n
+    frac = jnp.arange(n + 1, dtype=jnp.float32) / n
+    s = s0[..., None] + (s1 - s0)[..., None] * frac  # exact for dyadic pieces
+    s = s.at[..., 0].set(jnp.where(s0 <= 0, s0 - half, s0))
+    return s.at[..., n].set(jnp.where(s1 >= 1, s1 + half, s1))
+
+
+def _closer(field, policy, p, D, s0, s1, a, b):
+    """A piece without a sign change at its parts' ends, looked at closer: `_dip` on
+    [a, b], and the touching test (policy "sign+distance") on the piece."""
+    dipped, sub = _dip(field, p, D, a, b)
+    touched = (_touching(field, p, D, s0, s1) if policy == "sign+distance"
+               else jnp.zeros_like(dipped))
+    return dipped, sub, touched
+
+
+def _dip(field, p, D, a, b):
+    """(ok, sub): the first of CLOSER_PARTS equal parts of [a, b] whose ends' signs
+    differ."""
+    frac = jnp.arange(CLOSER_PARTS + 1, dtype=jnp.float32) / CLOSER_PARTS
+    _, change = field.sign_changes(p, D, a[..., None] + (b - a)[..., None] * frac)
+    return jnp.any(change, axis=-1), jnp.argmax(change, axis=-1)
+
+
+def _touching(field, p, D, s0, s1):
+    """`touches` at the piece's midpoint, for the isovalue nearest g there."""
+    m = p + D * (0.5 * (s0 + s1))[..., None]
+    fm, grad = field.at_points(m)
+    level = field.iso[jnp.argmin(jnp.abs(fm[..., None] - field.iso), axis=-1)]
+    length = jnp.linalg.norm(D, axis=-1) * (s1 - s0)
+    return touches(field.at_points, m, fm, grad, level, length)
 
 
 # A piece with no sign change at its parts' ends is sampled this much finer over the two

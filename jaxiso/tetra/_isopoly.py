@@ -118,6 +118,24 @@ def isopolygon_hits(o, d, p, f, ids, iso, snap=0.0):
     points = [_edge_point(pv, fv, iv, a, b, iso) for a, b in TET_EDGES]
     o3 = tuple(o[:, None, c] for c in range(3))
     d3 = tuple(d[:, None, c] for c in range(3))
+    inside, has_poly = _in_polygon(o3, d3, pv, points, above)
+    grad, grad_scale = _gradient_and_scale(pv, fv)
+    slope = _dot(grad, d3)
+    f_o = fv[0] + _dot(grad, _sub(o3, pv[0]))
+    # a ray parallel to the plane up to rounding (it lies in it: every side is ~0 too) has
+    # no single crossing; its t would be noise. The tets around take it where it leaves
+    # the plane.
+    parallel = jnp.abs(slope) <= SLOPE_ROUNDING * _dot(_abs(d3), grad_scale)
+    ok = inside & has_poly & ~parallel
+    t = jnp.where(ok, (iso - f_o) / jnp.where(slope != 0, slope, 1.0), jnp.inf)
+    return t, case
+
+
+def _in_polygon(o3, d3, pv, points, above):
+    """(inside, has_poly) [P, M]: the rays o3 + t d3 pass through the isopolygon (every
+    cut face's segment, `face_segments`, sees them on one side; a side within rounding of
+    0 counts as 0: the ray touches that edge), and the polygon is one (3 or more distinct
+    points) whose isovalue points on the tet edges are `points`."""
     coord_scale = _max([jnp.abs(x) for v in pv for x in v])
     inv_dd = 1.0 / _dot(d3, d3)
     lower, upper, distinct = None, None, 0
@@ -132,22 +150,10 @@ def isopolygon_hits(o, d, p, f, ids, iso, snap=0.0):
         lower = lo_k if lower is None else lower & lo_k
         upper = hi_k if upper is None else upper & hi_k
         distinct = distinct + (cut & length).astype(jnp.int32)
-    # a side within rounding of 0 counts as 0: the ray touches that edge
-    inside = lower | upper
     # a polygon collapsed to a point or a segment (the isovalue at a vertex or along a tet
     # edge, the rest on one side) covers nothing: the tets around it hold the surface, if
     # any, and the side test would accept rays near the segment's whole line
-    has_poly = distinct >= 3
-    grad, grad_scale = _gradient_and_scale(pv, fv)
-    slope = _dot(grad, d3)
-    f_o = fv[0] + _dot(grad, _sub(o3, pv[0]))
-    # a ray parallel to the plane up to rounding (it lies in it: every side is ~0 too) has
-    # no single crossing; its t would be noise. The tets around take it where it leaves
-    # the plane.
-    parallel = jnp.abs(slope) <= SLOPE_ROUNDING * _dot(_abs(d3), grad_scale)
-    ok = inside & has_poly & ~parallel
-    t = jnp.where(ok, (iso - f_o) / jnp.where(slope != 0, slope, 1.0), jnp.inf)
-    return t, case
+    return lower | upper, distinct >= 3
 
 
 def _edge_point(pv, fv, iv, a, b, iso):

@@ -384,23 +384,41 @@ def build_octree(data, *, spacing=1.0, origin=0.0, variance=0.0, iso_range=None,
     stored = raw
     if iso_range is not None:
         stored = _clamped(raw.astype(np.uint8) if raw.dtype.kind == "b" else raw, iso_range)
-    stored = _to_stored_dtype(stored)
+    stored = _to_stored_dtype(stored)  # called here: its warning's stacklevel counts on it
     dtype = stored.dtype
     x = stored.astype(np.float32, copy=False)  # every stored dtype is exact in float32
     finite = x[np.isfinite(x)]
     centre = 0.5 * (float(finite.min()) + float(finite.max())) if finite.size else 0.0
 
     stats = _level_stats(x, depth - 1, centre, report)
-    shapes = [s["count"].shape for s in stats[1:]]
-    shapes.insert(0, n)  # shapes[k]: node grid of level k
+    alive, leaf, field, coarse_values = _consolidate(x, stats, depth, variance, centre,
+                                                     dtype, multires)
+    report(0.6, "reconstructed field")
+    range_lo, range_hi = _min_max_tree(field, coarse_values, depth, multires)
+    report(0.75, "min/max tree")
 
-    # top-down: a node is alive (a record or cap) when no ancestor was a leaf and it does not
-    # consolidate itself; the highest consolidatable node of a path becomes a scalar leaf
+    records, caps = _assemble(alive, leaf, stats, field, range_lo, range_hi, depth, dtype,
+                              centre, multires)
+    report(1.0, f"done: {len(records['child_start'])} records, {len(caps)} caps")
+
+    return dict(records, caps=caps, spacing=spacing_v, origin=origin_v,
+                shape=tuple(int(s) for s in n), depth=depth, multires=bool(multires),
+                raw_itemsize=int(raw.dtype.itemsize))
+
+
+def _consolidate(x, stats, depth, variance, centre, dtype, multires):
+    """Top down: a node is alive (a record or cap) when no ancestor was a leaf and it does
+    not consolidate itself; the highest consolidatable node of a path becomes a scalar leaf.
+    Sets ``stats[k]["leaf_value"]``. Returns (alive, leaf) by level, the reconstructed field
+    (float32 voxels, leaf values broadcast) and coarse_values: level k -> what
+    `lookup_coarse` reads there (NaN: no data; filled with `multires` only)."""
+    n = x.shape
+    shapes = [n] + [s["count"].shape for s in stats[1:]]  # shapes[k]: node grid of level k
     alive = {depth: np.ones((1, 1, 1), bool)}
     leaf = {}
     field_value = np.zeros((1, 1, 1), np.float32)
     covered = np.zeros((1, 1, 1), bool)
-    coarse_values = {}  # level k -> what `lookup_coarse` reads there (NaN: no data)
+    coarse_values = {}
     for k in range(depth - 1, 0, -1):
         parent_alive = _upsample(alive[k + 1], shapes[k])
         cons = _consolidatable(stats[k], variance)
@@ -416,23 +434,19 @@ def build_octree(data, *, spacing=1.0, origin=0.0, variance=0.0, iso_range=None,
             coarse_values[k] = np.where(stats[k]["count"] > 0, value, np.nan)
     field = np.where(_upsample(covered, n), _upsample(field_value, n), x)
     coarse_values[0] = field
-    report(0.6, "reconstructed field")
+    return alive, leaf, field, coarse_values
 
+
+def _min_max_tree(field, coarse_values, depth, multires):
+    """(range_lo, range_hi) by level: the node cell ranges of the reconstructed field,
+    loosened with `multires` to cover the coarse values (the module docstring)."""
     cell_lo, cell_hi = _cell_ranges(field)
     range_lo, range_hi = _range_pyramid(cell_lo, cell_hi, depth - 1)
-    if multires and min(n) >= 2:  # a flat array has no cells, coarse or fine
+    if multires and min(field.shape) >= 2:  # a flat array has no cells, coarse or fine
         loose_lo, loose_hi = _coarse_value_ranges(coarse_values, depth - 1)
         range_lo = [np.minimum(a, b) for a, b in zip(range_lo, loose_lo)]
         range_hi = [np.maximum(a, b) for a, b in zip(range_hi, loose_hi)]
-    report(0.75, "min/max tree")
-
-    records, caps = _assemble(alive, leaf, stats, field, range_lo, range_hi, depth, dtype,
-                              centre, multires)
-    report(1.0, f"done: {len(records['child_start'])} records, {len(caps)} caps")
-
-    return dict(records, caps=caps, spacing=spacing_v, origin=origin_v,
-                shape=tuple(int(s) for s in n), depth=depth, multires=bool(multires),
-                raw_itemsize=int(raw.dtype.itemsize))
+    return range_lo, range_hi
 
 
 def _assemble(alive, leaf, stats, field, range_lo, range_hi, depth, dtype, centre, multires):
@@ -442,51 +456,16 @@ def _assemble(alive, leaf, stats, field, range_lo, range_hi, depth, dtype, centr
     reconstructed float32 voxels; range_lo/hi[k]: node cell ranges. Returns (records dict of
     [M] / [M, 8] arrays, caps [K, 8]).
     """
-    # every record: its level, grid position and pre-order rank (Morton code, then depth)
-    levels, positions = [], []
-    for k in range(depth, 1, -1):
-        pos = np.argwhere(alive[k]).astype(np.int64)
-        positions.append(pos)
-        levels.append(np.full(len(pos), k, np.int64))
-    level_of = np.concatenate(levels)
-    pos_of = np.concatenate(positions)
-    morton = _morton(pos_of << level_of[:, None], depth)
-    preorder = np.lexsort((-level_of, morton))  # ancestors (higher level) first
-
+    levels = range(depth, 1, -1)  # the levels of records, root first
+    positions = [np.argwhere(alive[k]).astype(np.int64) for k in levels]
     # children alive per record, their ranks among siblings
-    kids_alive = np.concatenate([
-        _children(alive[k - 1], p, False)
-        for k, p in zip(range(depth, 1, -1), positions)])
+    kids_alive = np.concatenate([_children(alive[k - 1], p, False)
+                                 for k, p in zip(levels, positions)])
     rank = np.cumsum(kids_alive, axis=1) - 1
-    n_kids = kids_alive.sum(axis=1)
+    child_start = _child_starts(positions, kids_alive.sum(axis=1), depth)
+    index, grid_index, grid_start = _record_index(alive, positions, rank, child_start, depth)
 
-    # sibling groups placed in pre-order of their parents; records start after the root
-    is_cap_parent = level_of == 2
-    child_start = np.empty(len(level_of), np.int64)
-    for parents, first in ((~is_cap_parent, 1), (is_cap_parent, 0)):
-        sizes = np.where(parents, n_kids, 0)[preorder]
-        starts = first + np.cumsum(sizes) - sizes
-        child_start[preorder[parents[preorder]]] = starts[parents[preorder]]
-
-    # record index of every record: root 0, else parent's child_start + rank
-    index = np.zeros(len(level_of), np.int64)
-    grid_index = {depth: np.zeros((1, 1, 1), np.int64)}
-    grid_start = {}
-    offset_of_level = np.cumsum([0] + [len(p) for p in positions])
-    for i, k in enumerate(range(depth, 1, -1)):
-        sl = slice(offset_of_level[i], offset_of_level[i + 1])
-        pos = positions[i]
-        if k < depth:
-            parent = tuple((pos >> 1).T)
-            octant = 4 * (pos[:, 0] & 1) + 2 * (pos[:, 1] & 1) + (pos[:, 2] & 1)
-            parent_row = grid_index[k + 1][parent]
-            index[sl] = grid_start[k + 1][parent] + rank[parent_row, octant]
-        grid_index[k] = np.full(alive[k].shape, -1, np.int64)
-        grid_index[k][tuple(pos.T)] = np.arange(sl.start, sl.stop)  # row in level-order
-        grid_start[k] = np.zeros(alive[k].shape, np.int64)
-        grid_start[k][tuple(pos.T)] = child_start[sl]
-
-    m = len(level_of)
+    m = len(index)
     child_value_dtype = np.float32 if multires else dtype
     out = dict(
         child_start=np.zeros(m, np.int32),
@@ -497,27 +476,80 @@ def _assemble(alive, leaf, stats, field, range_lo, range_hi, depth, dtype, centr
     )
     out["child_start"][index] = child_start
     out["child_offset"][index] = np.where(kids_alive, rank, -1)
-    for i, k in enumerate(range(depth, 1, -1)):
-        rows = index[offset_of_level[i]:offset_of_level[i + 1]]
-        pos = positions[i]
-        s = stats[k - 1]
-        kid_leaf = _children(leaf[k - 1], pos, True)
-        leaf_value = _children(s["leaf_value"], pos, 0.0)
-        coarse = _children(_node_means(s, centre), pos, 0.0) if multires else 0.0
-        out["child_value"][rows] = np.where(kid_leaf, leaf_value, coarse).astype(
-            child_value_dtype)
-        lo = _children(range_lo[k - 1], pos, np.inf)
-        hi = _children(range_hi[k - 1], pos, -np.inf)
-        out["child_min"][rows] = _as_stored_range(lo, dtype, "max")
-        out["child_max"][rows] = _as_stored_range(hi, dtype, "min")
+    first = 0
+    for k, pos in zip(levels, positions):
+        rows = index[first:first + len(pos)]
+        first += len(pos)
+        _fill_children(out, rows, pos, leaf[k - 1], stats[k - 1], range_lo[k - 1],
+                       range_hi[k - 1], dtype, centre, multires)
+    return out, _caps(alive[1], field, grid_index[2], grid_start[2], rank, dtype)
 
-    # caps: children of level-2 records, numbered by their parent's child_start + rank
-    cap_pos = np.argwhere(alive[1]).astype(np.int64)
+
+def _child_starts(positions, n_kids, depth):
+    """[M] where each record's sibling group of children starts (records in level order,
+    root first): groups placed in pre-order of their parents (Morton code, then depth),
+    records after the root, caps (children of level-2 records) from 0."""
+    level_of = np.concatenate([np.full(len(p), k, np.int64)
+                               for k, p in zip(range(depth, 1, -1), positions)])
+    pos_of = np.concatenate(positions)
+    morton = _morton(pos_of << level_of[:, None], depth)
+    preorder = np.lexsort((-level_of, morton))  # ancestors (higher level) first
+    is_cap_parent = level_of == 2
+    child_start = np.empty(len(level_of), np.int64)
+    for parents, first in ((~is_cap_parent, 1), (is_cap_parent, 0)):
+        sizes = np.where(parents, n_kids, 0)[preorder]
+        starts = first + np.cumsum(sizes) - sizes
+        child_start[preorder[parents[preorder]]] = starts[parents[preorder]]
+    return child_start
+
+
+def _record_index(alive, positions, rank, child_start, depth):
+    """(index, grid_index, grid_start): the record index of every record (root 0, else its
+    parent's child_start + rank), and per level k the grids of level-order rows and of
+    child_start (the parents' side of the lookups)."""
+    index = np.zeros(len(child_start), np.int64)
+    grid_index = {depth: np.zeros((1, 1, 1), np.int64)}
+    grid_start = {}
+    offset_of_level = np.cumsum([0] + [len(p) for p in positions])
+    for i, k in enumerate(range(depth, 1, -1)):
+        sl = slice(offset_of_level[i], offset_of_level[i + 1])
+        pos = positions[i]
+        if k < depth:
+            parent, octant = _parent_and_octant(pos)
+            parent_row = grid_index[k + 1][parent]
+            index[sl] = grid_start[k + 1][parent] + rank[parent_row, octant]
+        grid_index[k] = np.full(alive[k].shape, -1, np.int64)
+        grid_index[k][tuple(pos.T)] = np.arange(sl.start, sl.stop)  # row in level-order
+        grid_start[k] = np.zeros(alive[k].shape, np.int64)
+        grid_start[k][tuple(pos.T)] = child_start[sl]
+    return index, grid_index, grid_start
+
+
+def _parent_and_octant(pos):
+    """The parent grid index (a tuple for indexing) and the octant of nodes pos [N, 3]."""
+    octant = 4 * (pos[:, 0] & 1) + 2 * (pos[:, 1] & 1) + (pos[:, 2] & 1)
+    return tuple((pos >> 1).T), octant
+
+
+def _fill_children(out, rows, pos, kid_leaves, s, lo, hi, dtype, centre, multires):
+    """The child values and ranges of the records `rows` at grid positions pos, from
+    their children's level: leaf grid, statistics `s` and cell ranges lo / hi."""
+    kid_leaf = _children(kid_leaves, pos, True)
+    leaf_value = _children(s["leaf_value"], pos, 0.0)
+    coarse = _children(_node_means(s, centre), pos, 0.0) if multires else 0.0
+    out["child_value"][rows] = np.where(kid_leaf, leaf_value, coarse).astype(
+        out["child_value"].dtype)
+    out["child_min"][rows] = _as_stored_range(_children(lo, pos, np.inf), dtype, "max")
+    out["child_max"][rows] = _as_stored_range(_children(hi, pos, -np.inf), dtype, "min")
+
+
+def _caps(alive, field, grid_index, grid_start, rank, dtype):
+    """caps [K, 8]: the voxels of the alive level-1 nodes (children of level-2 records),
+    numbered by their parent's child_start + rank."""
+    cap_pos = np.argwhere(alive).astype(np.int64)
     caps = np.zeros((len(cap_pos), 8), dtype)
     if len(cap_pos):
-        parent = tuple((cap_pos >> 1).T)
-        octant = 4 * (cap_pos[:, 0] & 1) + 2 * (cap_pos[:, 1] & 1) + (cap_pos[:, 2] & 1)
-        cap_index = grid_start[2][parent] + rank[grid_index[2][parent], octant]
-        voxels = _children(field, cap_pos, 0.0)
-        caps[cap_index] = voxels.astype(dtype)
-    return out, caps
+        parent, octant = _parent_and_octant(cap_pos)
+        cap_index = grid_start[parent] + rank[grid_index[parent], octant]
+        caps[cap_index] = _children(field, cap_pos, 0.0).astype(dtype)
+    return caps

@@ -137,50 +137,8 @@ def _step(hierarchy, isovalues, method, n_cells, s):
     t_out, v_next = _exit(q0, dq, lo, size[:, None], v)
 
     def intersect_cells(_):
-        # the cell is the cube [lo, lo + size]: size > 1 for a coarse (LOD) cell
         corners = hierarchy.cell(extra, lo, bits)
-        scale = size.astype(jnp.float32)[:, None]
-        s1 = jnp.maximum(jnp.minimum(t_out, t_end) - t, 0.0)
-        p0 = jnp.clip((q0 + t[:, None] * dq - lo.astype(jnp.float32)) / scale, 0.0, 1.0)
-        # relative to the cell's smallest corner: data with a large offset (CT values
-        # ~1000 +- 1) keep their precision in the cubic's coefficients
-        low = jnp.min(corners, axis=-1, keepdims=True)
-        coeffs = _cell.ray_cubic(corners - low, p0, dq / scale)
-        iso_rel = isovalues[None, :] - low
-        s_root, found, which = _cell.first_root_multi(coeffs, iso_rel, s1, method=method)
-        # Watertight across cells: the field is continuous, but this cell's value at its
-        # entry face and the last cell's at its exit face are two float32 evaluations of
-        # it. A root within rounding of the shared face can fall outside both cells'
-        # [0, s1] (a crack: one pixel of a 64^2 sample of the 256^3 mixing layer). A sign change
-        # between the last exit and this entry is a root at the entry, and a sign change
-        # over this cell that the root finder missed is a root at its exit
-        # (the root finder evaluates its ends its own way).
-        a = _cell.normalise(coeffs, s1)
-        entry = jnp.sign(coeffs[:, :1] - iso_rel)                        # [P, K]
-        exit_ = jnp.sign(_cell.horner(a, 1.0)[:, None] - iso_rel)
-        # (an end exactly at the isovalue is a root too: the closed rule)
-        crack = (s["side"].astype(jnp.float32) * entry < 0) | (entry == 0)
-        missed = ~found[:, None] & ((entry * exit_ < 0) | (exit_ == 0))
-        side = jnp.where(jnp.isfinite(exit_), exit_, 0.0).astype(jnp.int8)
-        # a face whose 4 corners all equal an isovalue carries F = iso exactly, but a
-        # float32 point on it rarely evaluates to exactly iso: where the ray enters or
-        # leaves through such a face (the edge of a plateau of voxels at the isovalue,
-        # common in integer data) the root is the face itself
-        p1 = p0 + (s1 / scale[:, 0])[:, None] * dq / scale
-        at_entry, k_entry = _iso_face(corners, p0, isovalues)
-        at_exit, k_exit = _iso_face(corners, p1, isovalues)
-        at_entry = at_entry | jnp.any(crack, axis=-1)
-        k_entry = jnp.where(jnp.any(crack, axis=-1), jnp.argmax(crack, axis=-1), k_entry)
-        at_exit = at_exit | jnp.any(missed, axis=-1)
-        k_exit = jnp.where(jnp.any(missed, axis=-1), jnp.argmax(missed, axis=-1), k_exit)
-        s_root = jnp.where(at_entry, 0.0, jnp.where(found, s_root, s1))
-        which = jnp.where(at_entry, k_entry, jnp.where(found, which, k_exit))
-        found = found | at_entry | at_exit
-        # a constant cell has no surface (its level set is all of it or nothing)
-        varying = jnp.max(corners, axis=-1) > jnp.min(corners, axis=-1)
-        found = found & at_cell & varying
-        side = jnp.where(at_cell[:, None], side, s["side"])
-        return jnp.where(found, t + s_root, jnp.inf), found, which.astype(jnp.int32), side
+        return _cell_hits(corners, isovalues, method, s, lo, size, t_out, at_cell)
 
     t_root, found, which, side = jax.lax.cond(
         jnp.any(at_cell), intersect_cells,
@@ -198,3 +156,62 @@ def _step(hierarchy, isovalues, method, n_cells, s):
         cell=jnp.where(found[:, None], lo, s["cell"]),
         size=jnp.where(found, size, s["size"]),
         steps=s["steps"] + live.astype(jnp.int32), side=side, extra=extra)
+
+
+def _cell_hits(corners, isovalues, method, s, lo, size, t_out, at_cell):
+    """(t_root, found, which, side) [P] of the rays of state `s` at their cells, the cubes
+    [lo, lo + size] (size > 1 for a coarse, LOD, cell) with corners [P, 8], which they
+    leave at t_out; rays not `at_cell` find nothing and keep their side."""
+    q0, dq, t_end, t = s["q0"], s["dq"], s["t_end"], s["t"]
+    scale = size.astype(jnp.float32)[:, None]
+    s1 = jnp.maximum(jnp.minimum(t_out, t_end) - t, 0.0)
+    p0 = jnp.clip((q0 + t[:, None] * dq - lo.astype(jnp.float32)) / scale, 0.0, 1.0)
+    # relative to the cell's smallest corner: data with a large offset (CT values
+    # ~1000 +- 1) keep their precision in the cubic's coefficients
+    low = jnp.min(corners, axis=-1, keepdims=True)
+    coeffs = _cell.ray_cubic(corners - low, p0, dq / scale)
+    iso_rel = isovalues[None, :] - low
+    s_root, found, which = _cell.first_root_multi(coeffs, iso_rel, s1, method=method)
+    p1 = p0 + (s1 / scale[:, 0])[:, None] * dq / scale
+    at_entry, k_entry, at_exit, k_exit, side = _face_roots(
+        corners, coeffs, iso_rel, isovalues, s["side"], s1, p0, p1, found)
+    s_root = jnp.where(at_entry, 0.0, jnp.where(found, s_root, s1))
+    which = jnp.where(at_entry, k_entry, jnp.where(found, which, k_exit))
+    found = found | at_entry | at_exit
+    # a constant cell has no surface (its level set is all of it or nothing)
+    varying = jnp.max(corners, axis=-1) > jnp.min(corners, axis=-1)
+    found = found & at_cell & varying
+    side = jnp.where(at_cell[:, None], side, s["side"])
+    return jnp.where(found, t + s_root, jnp.inf), found, which.astype(jnp.int32), side
+
+
+def _face_roots(corners, coeffs, iso_rel, isovalues, last_side, s1, p0, p1, found):
+    """Roots on the cell's entry and exit faces that the root finder cannot see:
+    (at_entry, k_entry, at_exit, k_exit) [P] (k: which isovalue) and side [P, K], the
+    signs of F - isovalue at the exit (`last_side`: at the last cell's exit).
+
+    Watertight across cells: the field is continuous, but this cell's value at its
+    entry face and the last cell's at its exit face are two float32 evaluations of
+    it. A root within rounding of the shared face can fall outside both cells'
+    [0, s1] (a crack: one pixel of a 64^2 sample of the 256^3 mixing layer). A sign change
+    between the last exit and this entry is a root at the entry, and a sign change
+    over this cell that the root finder missed is a root at its exit
+    (the root finder evaluates its ends its own way)."""
+    a = _cell.normalise(coeffs, s1)
+    entry = jnp.sign(coeffs[:, :1] - iso_rel)                        # [P, K]
+    exit_ = jnp.sign(_cell.horner(a, 1.0)[:, None] - iso_rel)
+    # (an end exactly at the isovalue is a root too: the closed rule)
+    crack = (last_side.astype(jnp.float32) * entry < 0) | (entry == 0)
+    missed = ~found[:, None] & ((entry * exit_ < 0) | (exit_ == 0))
+    side = jnp.where(jnp.isfinite(exit_), exit_, 0.0).astype(jnp.int8)
+    # a face whose 4 corners all equal an isovalue carries F = iso exactly, but a
+    # float32 point on it rarely evaluates to exactly iso: where the ray enters or
+    # leaves through such a face (the edge of a plateau of voxels at the isovalue,
+    # common in integer data) the root is the face itself
+    at_entry, k_entry = _iso_face(corners, p0, isovalues)
+    at_exit, k_exit = _iso_face(corners, p1, isovalues)
+    at_entry = at_entry | jnp.any(crack, axis=-1)
+    k_entry = jnp.where(jnp.any(crack, axis=-1), jnp.argmax(crack, axis=-1), k_entry)
+    at_exit = at_exit | jnp.any(missed, axis=-1)
+    k_exit = jnp.where(jnp.any(missed, axis=-1), jnp.argmax(missed, axis=-1), k_exit)
+    return at_entry, k_entry, at_exit, k_exit, side
