@@ -4,8 +4,8 @@ command-line options, a run (header line, metadata, sections, the JSON file), ta
 printing, the charts' matplotlib set-up and the peers' helpers (memory check, pixel
 subsample, VTK isosurface, open3d ray casting).
 
-Only public jaxiso names are used here and in the benchmarks (DESIGN.md: benchmarks see
-the public API only).
+Only public jaxiso names are used here and in the benchmarks (docs/layout.md: the command
+line, notebooks, benchmarks and examples use the public names).
 
 The benchmarks put this folder on ``sys.path`` and import it as ``_common``.
 """

@@ -1,5 +1,5 @@
 """Scenes split over the devices of a mesh: one part of the data per device, the nearest
-hit of every ray by a collective minimum of `t` (DESIGN.md "Past one machine").
+hit of every ray by a collective minimum of `t` (docs/distributed.md, "Split the data").
 
 A split scene holds P parts of one scene kind (bricks of a volume, spatial groups of a
 tet mesh), each a complete scene of its own (its own octree or BVH). Their arrays are

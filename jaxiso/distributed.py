@@ -1,4 +1,4 @@
-"""More than one machine, on JAX's own runtime (DESIGN.md "Past one machine").
+"""More than one machine, on JAX's own runtime (docs/distributed.md).
 
     import jaxiso as ji
     from jaxiso import distributed

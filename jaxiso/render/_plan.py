@@ -4,8 +4,8 @@
 on the current backend; `intersect` and `render` both use it, and both are jitted inside,
 so the call a user writes first is the fast call. Packets are tiles of neighbouring
 pixels: a batched ``while_loop`` runs until its slowest lane is done, so coherent rays
-that finish together waste the least work (DESIGN.md: 8x8 tiles ran 13x faster than one
-vmap over a whole 512x512 image).
+that finish together waste the least work (docs/performance.md, "The plan"; the packet
+sizes measured are in benchmarks/NOTES.md, "Ray tracing kernels").
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
-"""Tet meshes split by a spatial partition, one part per device (DESIGN.md "Past one
-machine"; the tet analog of `jaxiso.volume.brick_volume`).
+"""Tet meshes split by a spatial partition, one part per device (docs/distributed.md,
+"Split the data"; the tet analog of `jaxiso.volume.brick_volume`).
 
 Each tet goes to exactly one part: the cell of a grid (gx, gy, gz) of centroid
 quantiles that holds its centroid. A tet's field is its own (linear in its four

@@ -1,5 +1,5 @@
 """Data-distributed volumes: one brick of the voxels per device, nearest hit by a
-collective minimum of `t` (DESIGN.md "Past one machine"; OSPRay's MPI module is the
+collective minimum of `t` (docs/distributed.md, "Split the data"; OSPRay's MPI module is the
 anchor: every rank renders its own brick, first hits composite by depth).
 
 A volume of n voxel planes per axis is cut by a brick grid (gx, gy, gz) into
