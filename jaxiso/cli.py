@@ -1,6 +1,6 @@
 """Command line: ``jaxiso gallery`` (default) renders the catalogue of test surfaces;
 ``jaxiso demo`` prints interval vs affine enclosures; ``jaxiso render`` renders one scene,
-on one process or on N (local processes, srun, mpirun: README "More than one machine").
+on one process or on N (local processes, srun, mpirun: docs/distributed.md).
 
 Bad arguments (unknown surface names, a negative seed, a size out of range, an output path
 that is not a writable directory) are reported as argparse reports its own: usage and a

@@ -1,5 +1,6 @@
 """Preparing an `ImplicitSurface` to trace: the explicit, visible step that does the work
-a constructor never does (constructing a scene only checks its fields).
+a constructor never does (constructing a scene only checks its fields; docs/performance.md,
+"Preparing a scene").
 
 It learns two facts of f (whether it is a network, whether it is a long program for the
 tape path), resolves ``arithmetic="auto"`` by measuring both arithmetics, and builds the
