@@ -17,14 +17,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1] / "jaxiso"
 MAX_LINES = 60
 
 # (file, name): private names still crossing files
-ALLOWED_PRIVATE = {
-    # implicit/program.py, _tape_rays.py and _auto.py are being changed for issue 27
-    # (the lead renames these)
-    ("implicit/_tape_rays.py", "_chunked_eval"),
-    ("implicit/_tape_rays.py", "_histogram"),
-    ("implicit/_auto.py", "_eval"),
-    ("implicit/program.py", "_tidy"),
-}
+ALLOWED_PRIVATE: set = set()
 
 # functions longer than MAX_LINES, left to shorten (file, name)
 ALLOWED_LONG = {

@@ -220,7 +220,7 @@ def _random_program(rng, size, n_vars=3):
     while len(pool) > 1:
         ops.append(("min", pool.pop(), pool.pop(), 0.0))
         pool.append(len(ops) - 1)
-    return _tape._tidy(ops, len(ops) - 1, n_vars)
+    return _tape.tidy(ops, len(ops) - 1, n_vars)
 
 
 def _ssa64(op, a, b, imm, n, x):

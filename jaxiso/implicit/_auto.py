@@ -24,7 +24,7 @@ from ._field import enclosure, extended, ray_boxes
 from ._grid import values_key
 from ._memo import BoundedCache
 from ._progress import Progress
-from .program import _eval  # private name of program.py, to be renamed by its owner
+from .program import evaluate_tapes
 
 N_PIECES = 32
 PIECE = 2.0**-6   # of the domain's diagonal
@@ -124,13 +124,13 @@ def _measure_tape(tape, lo, hi, rest) -> tuple[str, str]:
     s0, s1 = jnp.zeros((1, N_PIECES)), jnp.ones((1, N_PIECES))
     one = _tape.take_regions(tape, jnp.zeros(1, jnp.int32))
     rest = [jnp.asarray(v, jnp.float32) for v in rest]
-    vals = _eval(one, [pts[None, ..., c].reshape(1, -1) for c in range(3)] + rest)
+    vals = evaluate_tapes(one, [pts[None, ..., c].reshape(1, -1) for c in range(3)] + rest)
     widths = {}
     for arithmetic in ("interval", "affine"):
         boxes = ray_boxes(p[None], D[None], s0, s1, arithmetic)
         point = (lambda v: Interval(v, v)) if arithmetic == "interval" else (
             lambda v: aa.as_affine(v, 1))
-        r = _eval(one, boxes + [point(v) for v in rest])
+        r = evaluate_tapes(one, boxes + [point(v) for v in rest])
         r = aa.to_interval(r) if arithmetic == "affine" else r
         widths[arithmetic] = (r.hi - r.lo)[0]
     return _pick(np.asarray(vals).reshape(N_PIECES, SAMPLES), widths, TAPE_COST_RATIO,

@@ -37,6 +37,7 @@ from ..arith._affine_type import Affine
 from ..arith._interval import Interval
 from ..arith._tape import Tape
 from ._field import as_field, clip_to_box
+from ._memo import BoundedCache
 from .vm import VMProgram
 
 __all__ = ["tape_of", "Schedule", "ProgramHits", "cast", "default_schedule",
@@ -52,7 +53,9 @@ def prefers_tape(tape: Tape) -> bool:
     return int(tape.n) >= TAPE_CROSSOVER
 
 
-_TAPES: dict = {}  # f -> its tape, or None (not a tape program): built once per function
+# f -> its tape, or None (not a tape program): built once per function (tracing a long
+# program takes seconds); bounded, emptied by `jaxiso.clear_caches`
+_TAPES = BoundedCache("tapes of long programs", 16)
 
 
 def long_program_tape(f, params_tree=None) -> Tape | None:
@@ -61,14 +64,7 @@ def long_program_tape(f, params_tree=None) -> Tape | None:
     `params_tree`: None (f takes no params) or the treedef of a params pytree of scalar
     leaves, which become coordinates 4, 5, ... of the tape. Built once per function
     (tracing a long program takes seconds)."""
-    key = (f, params_tree)
-    try:
-        if key in _TAPES:
-            return _TAPES[key]
-    except TypeError:  # unhashable: not cached
-        return _long_tape(f, params_tree)
-    _TAPES[key] = _long_tape(f, params_tree)
-    return _TAPES[key]
+    return _TAPES.get((f, params_tree), lambda: _long_tape(f, params_tree))
 
 
 def _long_tape(f, params_tree):
@@ -137,11 +133,13 @@ def _vm_tape(prog: VMProgram) -> Tape:
                 f"{prog.source}: instruction {i + 1} ({prog.names[i]} {op}) has no tape "
                 f"opcode (the tape runs {', '.join(sorted(_VM_UNARY) + sorted(_VM_BINARY))})")
         where.append(len(ops) - 1)
-    return _tape._tidy(ops, where[-1], 4)
+    return _tape.tidy(ops, where[-1], 4)
 
 
 @functools.partial(jax.jit, static_argnames=("record",))
-def _eval(tape, coords, record=False):
+def evaluate_tapes(tape, coords, record=False):
+    """`_tape.evaluate` jitted (one compiled evaluator per opset, padded length and
+    register count)."""
     return _tape.evaluate(tape, coords, record)
 
 
@@ -151,7 +149,7 @@ def evaluate_points(tape: Tape, x, y, z, w=0.0):
     x, y, z, w = jnp.broadcast_arrays(*(jnp.asarray(v, jnp.float32) for v in (x, y, z, w)))
     shape = x.shape
     one = _tape.take_regions(tape, jnp.zeros(1, jnp.int32))
-    out = _eval(one, [v.reshape(1, -1) for v in (x, y, z, w)])
+    out = evaluate_tapes(one, [v.reshape(1, -1) for v in (x, y, z, w)])
     return out.reshape(shape)
 
 
@@ -162,7 +160,7 @@ def evaluate_intervals(tape: Tape, x: Interval, y: Interval, z: Interval, w=0.0)
     flat = [Interval(jnp.broadcast_to(c.lo, shape).reshape(1, -1),
                      jnp.broadcast_to(c.hi, shape).reshape(1, -1)) for c in (x, y, z)]
     one = _tape.take_regions(tape, jnp.zeros(1, jnp.int32))
-    out = _eval(one, flat + [w])
+    out = evaluate_tapes(one, flat + [w])
     return Interval(out.lo.reshape(shape), out.hi.reshape(shape))
 
 
@@ -300,7 +298,7 @@ def _lead(c):
     return c.lo if isinstance(c, Interval) else c.center if isinstance(c, Affine) else c
 
 
-def _chunked_eval(tapes, coords, record, budget, min_chunks=1):
+def chunked_eval(tapes, coords, record, budget, min_chunks=1):
     """`_tape.evaluate` over region chunks so that its working set (the register file,
     and the choices of `record`) stays within `budget` elements (R is a power of two), in
     at least `min_chunks` chunks (each runs as many instructions as its longest tape:
@@ -363,7 +361,7 @@ def _level(tapes, reg, smap, front, frame, lo, hi, w, gy, gx, h, Tc, H, W, ortho
     boxes, ok = _region_boxes(frame, lo, hi, ty, tx, Tc, s0, s1, H, W, ortho)
     valid = valid & ok
     wi = Interval(w, w)
-    f, chosen = _chunked_eval(tapes, boxes + [wi], True, budget)
+    f, chosen = chunked_eval(tapes, boxes + [wi], True, budget)
     full = valid & (f.hi < 0)
     amb = valid & ~(f.lo > 0) & ~full
     inf = jnp.float32(jnp.inf)
@@ -429,7 +427,7 @@ def _final(tapes, reg, pix, frame, w, T, M, rounds, H, W, ortho, budget):
         m = s.shape[-1]
         p = o[:, :, None, :] + s[..., None] * D[:, :, None, :]
         coords = [p[..., c].reshape(R, Q * m) for c in range(3)] + [w]
-        return _chunked_eval(tapes, coords, False, budget).reshape(R, Q, m)
+        return chunked_eval(tapes, coords, False, budget).reshape(R, Q, m)
 
     if M == 1:
         f = values(a[..., None])[..., 0]
@@ -471,7 +469,8 @@ def _front_hits(front, pix, T):
     return jnp.where(ok, c * dlen, jnp.inf)
 
 
-def _histogram(n):
+def histogram(n):
+    """Counts of tape lengths `n` by power-of-two bins (a level's report)."""
     n = np.asarray(n)
     if n.size == 0:
         return {}
@@ -559,7 +558,7 @@ def cast(f, lo, hi, camera, w=0.0, schedule: Schedule | None = None, prune: bool
         stats["levels"].append(dict(
             tile=Tc, regions=n_valid, full=n_full, ambiguous=n_amb, region_bucket=size,
             tape_bucket=tapes.length, tape_mean=float(n_kept.mean()) if n_amb else 0.0,
-            tape_max=int(n_kept.max()) if n_amb else 0, tape_hist=_histogram(n_kept),
+            tape_max=int(n_kept.max()) if n_amb else 0, tape_hist=histogram(n_kept),
             seconds=time.perf_counter() - t_level, eval_seconds=t_eval))
     t_final = time.perf_counter()
     img, n_rays = _final(tapes, reg, pix, frame, w, Tf, schedule.samples, schedule.rounds,
