@@ -45,6 +45,8 @@ def test_float64_network_matches_a_hand_evaluation():
                                rtol=1e-12, atol=1e-12)
 
 
+# ~75 s on 2 cores (compiles of every bench case): run with the benchmarks, not in CI
+@pytest.mark.heavy
 @needs_data
 def test_tiny_run_writes_json(tmp_path):
     bench = load_bench()

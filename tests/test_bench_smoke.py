@@ -113,6 +113,8 @@ def test_run_keeps_the_other_sections_when_one_fails(tmp_path, capsys):
     assert "ERRORS in ['b']" in out
 
 
+# ~45-60 s on 2 cores (compilation): run with the benchmarks, not in the CI suite
+@pytest.mark.heavy
 def test_quick_run_writes_json(tmp_path):
     bench = load_bench()
     returned = bench.main(["--quick", "--out", str(tmp_path)])

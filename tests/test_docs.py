@@ -77,6 +77,8 @@ def test_relative_links_exist(page):
     assert not missing, f"{_name(page)} links to missing files: {missing}"
 
 
+# ~50 s on 2 cores (four scene kinds compiled): run when the picture is regenerated
+@pytest.mark.heavy
 def test_contact_sheet_script_runs(tmp_path, monkeypatch):
     """At 24 px a panel; without the shared fox (its fallback network is built here)."""
     import importlib.util

@@ -378,7 +378,8 @@ def _reference_hits(params, act, o, d, samples=2000):
     return hit
 
 
-@pytest.mark.parametrize("name", ["fox", "bunny"])
+# bunny ~60 s on 2 cores (a 64-wide elu network): run with the benchmarks
+@pytest.mark.parametrize("name", ["fox", pytest.param("bunny", marks=pytest.mark.heavy)])
 def test_shared_network_hit_masks_match_float64(name):
     """Default options (auto arithmetic, verified hits) on a 24^2 view."""
     m = _need(name)

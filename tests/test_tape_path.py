@@ -107,6 +107,9 @@ def test_long_program_chooses_the_tape_plan_and_renders():
     np.testing.assert_array_equal(drawn, np.asarray(hits.hit).reshape(-1))
 
 
+# ~90 s on 2 cores; the tape path's render is checked in the suite by
+# test_long_program_chooses_the_tape_plan_and_renders
+@pytest.mark.heavy
 def test_render_same_image_both_paths_with_shadows():
     prog = csg_program(12, seed=3)
     S = ji.ImplicitSurface(prog, (-1.6,) * 3, (1.6,) * 3, arithmetic="interval")
@@ -245,21 +248,32 @@ def test_affine_tape_evaluation_is_the_affine_extension_and_encloses_float64():
                                f64.reshape(32, -1), atol=1e-5)
 
 
-def test_a_small_memory_budget_runs_in_batches_with_the_same_hits():
-    """The tape path's regions run in batches sized from the budget: a budget a few
-    hundred times smaller splits the work into many batches and finds the same hits; a
-    budget too small for one region's tape raises MemoryError naming both figures."""
+def _budget_case():
     prog = csg_program(40, seed=7)
     S = ji.ImplicitSurface(prog, (-1.3,) * 3, (1.3,) * 3, arithmetic="interval")
     cam = ji.Camera.look_at((3.0, 2.5, 2.0), (0, 0, 0), width=32, height=32)
     rays = cam.rays().reshape((-1,))
-    t_min, t_max = jnp.zeros(rays.shape), jnp.full(rays.shape, jnp.inf)
+    return S, rays, jnp.zeros(rays.shape), jnp.full(rays.shape, jnp.inf)
+
+
+# ~170 s on 2 cores: every batch size is a compile of its own
+@pytest.mark.heavy
+def test_a_small_memory_budget_runs_in_batches_with_the_same_hits():
+    """The tape path's regions run in batches sized from the budget: a budget a few
+    hundred times smaller splits the work into many batches and finds the same hits."""
+    S, rays, t_min, t_max = _budget_case()
     big, small = {}, {}
     a = S.intersect_tape(rays, t_min, t_max, stats=big)
     b = S.intersect_tape(rays, t_min, t_max, stats=small, budget=400_000)
     assert small["batches"] > 2 * big["batches"]
     np.testing.assert_array_equal(np.asarray(a.hit), np.asarray(b.hit))
     np.testing.assert_array_equal(np.asarray(a.t), np.asarray(b.t))
+
+
+def test_a_budget_too_small_raises_naming_both_figures():
+    """A budget too small for one region's tape raises MemoryError naming both figures,
+    before any level runs; Plan refuses a budget under 1 MB."""
+    S, rays, t_min, t_max = _budget_case()
     with pytest.raises(MemoryError, match="memory budget"):
         S.intersect_tape(rays, t_min, t_max, budget=20_000)
     with pytest.raises(ValueError, match="memory_budget"):
