@@ -17,8 +17,8 @@ from ._core import Rays, pytree_dataclass
 __all__ = ["Rays", "Camera"]
 
 
-def _unit(v, xp=jnp):
-    return v / xp.linalg.norm(v)
+def _unit(v):
+    return v / jnp.linalg.norm(v)
 
 
 @pytree_dataclass
@@ -48,7 +48,7 @@ class Camera:
         """A perspective camera at `eye` looking at `target`; fov is vertical, degrees."""
         if not 0.0 < float(fov) < 180.0:
             raise ValueError(f"fov must be in (0, 180) degrees, got {fov}")
-        return _make(eye, target, up, np.tan(np.deg2rad(np.float32(fov)) / 2), width,
+        return _make(eye, target, up, jnp.tan(jnp.deg2rad(jnp.float32(fov)) / 2), width,
                      height, False)
 
     @staticmethod
@@ -59,7 +59,7 @@ class Camera:
         `2 * half_height` world units tall centred on the eye-target line."""
         if not float(half_height) > 0.0:
             raise ValueError(f"half_height must be positive, got {half_height}")
-        return _make(eye, target, up, np.float32(half_height), width, height, True)
+        return _make(eye, target, up, jnp.float32(half_height), width, height, True)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -97,27 +97,17 @@ def _pixels(name, n) -> int:
 def _make(eye, target, up, scale, width, height, orthographic) -> Camera:
     width = _pixels("width", width)
     height = width if height is None else _pixels("height", height)
-    # concrete views are set up in numpy (float32, the same operations): in jax each
-    # small op compiled on its own, ~35 compiles of a first picture (issue 29)
-    xp = np if _concrete(eye, target, up) else jnp
-    eye, target, up = (xp.asarray(v, xp.float32) for v in (eye, target, up))
+    eye = jnp.asarray(eye, jnp.float32)
+    target = jnp.asarray(target, jnp.float32)
+    up = jnp.asarray(up, jnp.float32)
     if eye.shape != (3,) or target.shape != (3,) or up.shape != (3,):
         raise ValueError("eye, target and up must be 3-vectors")
     _check_basis(eye, target, up)
-    forward = _unit(target - eye, xp)
-    right = _unit(xp.cross(forward, up), xp)
-    true_up = xp.cross(right, forward)
-    return Camera(*(jnp.asarray(v, jnp.float32) for v in (eye, forward, right, true_up, scale)),
-                  width, height, orthographic)
-
-
-def _concrete(*values) -> bool:
-    try:
-        for v in values:
-            np.asarray(v)
-    except jax.errors.TracerArrayConversionError:
-        return False
-    return True
+    forward = _unit(target - eye)
+    right = _unit(jnp.cross(forward, up))
+    true_up = jnp.cross(right, forward)
+    return Camera(eye, forward, right, true_up, jnp.asarray(scale, jnp.float32), width,
+                  height, orthographic)
 
 
 def _check_basis(eye, target, up):
