@@ -97,9 +97,9 @@ def two_processes():
         pytest.skip(f"this platform cannot run multi-process CPU collectives: {bad[0]}")
 
 
-def _same_hits(got, ref, voxel):
+def _same_hits(got, ref, voxel, exact=False):
     """>= 99.99% of pixels with the same hit mask, depths within 1e-4 voxels, the same
-    surfaces and normals."""
+    surfaces and normals (exact: every hit, depth and normal bit for bit)."""
     assert ref["hit"].sum() > 100
     same = got["hit"] == ref["hit"]
     assert same.mean() >= 0.9999, f"{(~same).sum()} pixels differ"
@@ -108,6 +108,9 @@ def _same_hits(got, ref, voxel):
     assert depth.max() <= 1e-4, depth.max()
     assert np.all(got["surface"][both] == ref["surface"][both])
     np.testing.assert_allclose(got["normal"][both], ref["normal"][both], atol=1e-3)
+    if exact:  # bricks trace in the whole volume's voxel frame: the same float32 sums
+        for key in ("hit", "t", "normal", "surface"):
+            np.testing.assert_array_equal(got[key], ref[key], err_msg=key)
 
 
 def _one_process(script, devices, tmp_path, *names):
@@ -225,11 +228,10 @@ _BRICKS_ONE_PROCESS = textwrap.dedent("""
 def test_two_bricks_on_two_devices_give_the_whole_volumes_hits(tmp_path):
     """One process, 2 CPU devices: `intersect(devices=...)` gives the local hits bit for
     bit; a 33^3 volume in 2 bricks (planes 0-16 and 16-32):
-    the collective minimum of t gives the whole volume's hits (mask on >= 99.99% of
-    pixels, depth within 1e-4 voxels, same normals), and one brick's arrays are at most
-    0.6 of the whole octree's."""
+    the collective minimum of t gives the whole volume's hits bit for bit (every mask,
+    depth and normal), and one brick's arrays are at most 0.6 of the whole octree's."""
     ref, got = _one_process(_BRICKS_ONE_PROCESS, 2, tmp_path, "whole", "bricks")
-    _same_hits(got, ref, 2.0 / 32)
+    _same_hits(got, ref, 2.0 / 32, exact=True)
     assert got["nbytes"] <= 0.6 * ref["nbytes"], (got["nbytes"], ref["nbytes"])
 
 
@@ -330,10 +332,10 @@ _GRIDS_ONE_PROCESS = textwrap.dedent("""
 def test_brick_grid_and_tet_parts_on_four_devices(tmp_path):
     """One process, 4 CPU devices: a 33^3 volume read through a SampledField as a 2 x 2
     grid of bricks (one per device, each its own octree) gives the whole volume's hits
-    and image, and one brick holds at most 0.35 of the whole octree; a tet mesh split in
-    2 x 2 parts by its centroids gives the whole mesh's hits."""
+    bit for bit and its image, and one brick holds at most 0.35 of the whole octree; a
+    tet mesh split in 2 x 2 parts by its centroids gives the whole mesh's hits."""
     ref, got = _one_process(_GRIDS_ONE_PROCESS, 4, tmp_path, "whole", "bricks")
-    _same_hits(got, ref, 2.0 / 32)
+    _same_hits(got, ref, 2.0 / 32, exact=True)
     assert np.abs(got["image"] - ref["image"]).max() < 1e-3
     assert got["nbytes"] <= 0.35 * ref["nbytes"], (got["nbytes"], ref["nbytes"])
     ref, got = (np.load(tmp_path / f"{n}.npz") for n in ("tets_whole", "tets_split"))

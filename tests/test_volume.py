@@ -353,3 +353,17 @@ def test_render_multiple_isovalues_transparency_and_no_retrace_on_isovalue_chang
     b = ji.render(VolumeIsosurface(vol, [0.35, 0.6]), cam, shading=shading)
     assert np.all(np.isfinite(a)) and not np.array_equal(a, b)
     assert a.shape == (16, 16, 3)
+
+
+def test_a_voxel_frame_must_place_the_volume_at_its_origin():
+    """A brick traces rays in the whole volume's frame (origin, offset of its first voxel);
+    a frame that puts the voxels elsewhere than the volume's own origin, or half a frame,
+    is refused (a brick whose volume was replaced would draw in the wrong place)."""
+    vol = OctreeVolume.from_array(np.random.default_rng(0).random((5, 5, 5)), spacing=0.5,
+                                  origin=(1.0, 2.0, 3.0), progress=False)
+    scene = VolumeIsosurface(vol, 0.5, frame=((0.0, 2.0, 3.0), (2, 0, 0)))  # 0 + 2 * 0.5
+    assert scene.frame_offset.tolist() == [2, 0, 0]
+    with pytest.raises(ValueError, match="frame puts"):
+        VolumeIsosurface(vol, 0.5, frame=((0.0, 0.0, 0.0), (0, 0, 0)))
+    with pytest.raises(ValueError, match="go together"):
+        scene.replace(frame_origin=None)

@@ -112,7 +112,8 @@ def _read_brick(data, ranges) -> np.ndarray:
 def _brick_scene(data, ranges, isovalues, spacing, origin, clip_box, options,
                  build) -> VolumeIsosurface:
     """The `VolumeIsosurface` of one brick: its own octree, origin at its first voxel,
-    clip box = the user's box cut to the brick's real cells."""
+    clip box = the user's box cut to the brick's real cells, rays traced in the whole
+    volume's voxel frame."""
     n = np.asarray(data.shape)
     start = np.array([a for a, _ in ranges])
     stop = np.array([b for _, b in ranges])
@@ -126,7 +127,9 @@ def _brick_scene(data, ranges, isovalues, spacing, origin, clip_box, options,
         lo, hi = np.maximum(lo, c_lo), np.minimum(hi, c_hi)
     if np.any(lo > hi):  # the clip box misses this brick: a box past the whole volume
         lo = hi = (origin + n * spacing).astype(np.float32)
-    return VolumeIsosurface(vol, isovalues, clip_box=(lo, hi), **options)
+    # rays in the whole volume's voxel frame: the same float32 planes at the seams
+    frame = (origin.astype(np.float32), start.astype(np.int32))
+    return VolumeIsosurface(vol, isovalues, clip_box=(lo, hi), frame=frame, **options)
 
 
 def brick_volume(data, isovalues, mesh: Mesh, *, grid=None, axis: int = 0, spacing=1.0,

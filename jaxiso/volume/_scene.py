@@ -58,6 +58,11 @@ class VolumeIsosurface(SceneFields):
         stop at coarse cells where a pixel covers several voxels (octree only, ch. 4).
         Shadow rays from `render` run at `shadow_eps_scale` times its dP/dV ratio.
       max_steps: iteration bound per ray (None: enough for any ray through the volume).
+      frame_origin, frame_offset: None (rays in this volume's own voxel frame), or a
+        [3] float32 origin and the [3] int32 index this volume's voxel (0, 0, 0) has
+        there: a brick of a larger volume (`brick_volume`) traces rays in the whole
+        volume's frame, so the float32 arithmetic on either side of a seam is the same
+        as the whole volume's and the bricks' depths equal its own.
 
     volume, isovalues, clip box and lod are traced (`replace` / `with_isovalues` /
     `with_lod` never recompile for the same shapes); method, traversal, normals and
@@ -75,9 +80,12 @@ class VolumeIsosurface(SceneFields):
     normals: str = static_field("trilinear")
     lod: object = None
     max_steps: int | None = static_field(None)
+    frame_origin: object = None
+    frame_offset: object = None
 
     def __init__(self, volume, isovalues, *, clip_box=None, method="neubauer",
-                 traversal="restart", normals="trilinear", lod=None, max_steps=None):
+                 traversal="restart", normals="trilinear", lod=None, max_steps=None,
+                 frame=None):
         if not isinstance(volume, (_octree.OctreeVolume, MacrocellGrid)):
             raise TypeError("volume must be an OctreeVolume or a MacrocellGrid, got "
                             f"{type(volume).__name__}; build one with "
@@ -89,9 +97,11 @@ class VolumeIsosurface(SceneFields):
             check_finite("clip_box", jnp.stack([c_lo, c_hi]))
             _check_box(c_lo, c_hi)
             lo, hi = jnp.maximum(lo, c_lo), jnp.minimum(hi, c_hi)
+        frame_origin, frame_offset = (None, None) if frame is None else frame
         for name, value in (("volume", volume), ("isovalues", isovalues), ("clip_lo", lo),
                             ("clip_hi", hi), ("method", method), ("traversal", traversal),
-                            ("normals", normals), ("lod", lod), ("max_steps", max_steps)):
+                            ("normals", normals), ("lod", lod), ("max_steps", max_steps),
+                            ("frame_origin", frame_origin), ("frame_offset", frame_offset)):
             object.__setattr__(self, name, value)
         self._validate()
 
@@ -110,6 +120,25 @@ class VolumeIsosurface(SceneFields):
             object.__setattr__(self, name, jnp.asarray(getattr(self, name), jnp.float32))
             check_finite(name, getattr(self, name))
         check_count("max_steps", self.max_steps)
+        self._validate_frame()
+
+    def _validate_frame(self):
+        """Both frame fields or neither; the volume's origin where the frame puts it."""
+        if (self.frame_origin is None) != (self.frame_offset is None):
+            raise ValueError("frame_origin and frame_offset go together (both or neither)")
+        if self.frame_origin is None:
+            return
+        object.__setattr__(self, "frame_origin", jnp.asarray(self.frame_origin, jnp.float32))
+        object.__setattr__(self, "frame_offset", jnp.asarray(self.frame_offset, jnp.int32))
+        origin, offset = concrete(self.frame_origin), concrete(self.frame_offset)
+        own, spacing = concrete(self.volume.origin), concrete(self.volume.spacing)
+        if any(x is None for x in (origin, offset, own, spacing)):
+            return
+        placed = origin.astype(np.float64) + offset * spacing.astype(np.float64)
+        if not np.allclose(placed, own, rtol=1e-5, atol=1e-4 * float(np.min(spacing))):
+            raise ValueError(f"the frame puts this volume's first voxel at {placed}, but "
+                             f"its origin is {own} (a brick's volume replaced? build "
+                             "bricks with brick_volume)")
 
     @property
     def lo(self):
@@ -148,9 +177,10 @@ class VolumeIsosurface(SceneFields):
         vol = self.volume
         lod = self.lod
         o, d = rays.origin, rays.direction
-        q0, dq = voxel_ray(vol.origin, vol.spacing, o, d)
-        box_lo = (self.clip_lo - vol.origin) / vol.spacing
-        box_hi = (self.clip_hi - vol.origin) / vol.spacing
+        origin, offset = self._frame()
+        q0, dq = voxel_ray(origin, vol.spacing, o, d)
+        box_lo = _voxel_coordinates(self.clip_lo, origin, vol.spacing)
+        box_hi = _voxel_coordinates(self.clip_hi, origin, vol.spacing)
         t_in, t_out = slab(q0, dq, box_lo, box_hi)
         t_start = jnp.maximum(t_min, t_in)
         t_end = jnp.minimum(t_max, t_out)
@@ -160,14 +190,14 @@ class VolumeIsosurface(SceneFields):
             cells = OctreeCells(vol, self.isovalues, traversal == "neighbor", lod)
         t_raw, hit, which, cell, size, steps = traverse(
             cells, self.isovalues, q0, dq, t_start, t_end, method=method,
-            max_steps=self.max_steps, lanes=lanes)
+            max_steps=self.max_steps, lanes=lanes, offset=offset)
         safe_t = jnp.where(hit, t_raw, 0.0)
         if lod is None:
             level = self.isovalues[jnp.maximum(which, 0)]
             safe_t = attach_t(_field, safe_t, o, d, jnp.float32(0.0), vol, level, hit)
         q_hit = q0 + safe_t[:, None] * dq
         corners = cells.cell(cells.init(q0.shape[0]), cell, _log2(size))
-        u = jnp.clip((q_hit - cell) / size[:, None], 0.0, 1.0)
+        u = jnp.clip((q_hit - (cell + offset)) / size[:, None], 0.0, 1.0)
         if normals == "central" and lod is None:
             grad = _central_gradient(vol, cell, u)
         else:
@@ -176,6 +206,24 @@ class VolumeIsosurface(SceneFields):
         return Hits(t=jnp.where(hit, safe_t, jnp.inf), hit=hit,
                     normal=jnp.where(hit[:, None], normal, 0.0),
                     surface=jnp.where(hit, which, -1), steps=steps)
+
+    def _frame(self):
+        """(origin [3] float32, offset [3] int32) of the voxel frame rays are traced in."""
+        if self.frame_origin is None:
+            return self.volume.origin, jnp.zeros(3, jnp.int32)
+        return self.frame_origin, self.frame_offset
+
+
+def _voxel_coordinates(corner, origin, spacing):
+    """A clip-box corner [3] in voxel units, snapped onto the voxel plane it is within
+    float32 rounding of: a volume's own faces and a brick's seams are such planes, and
+    the traversal crosses planes at exact integers (a face a few ulp off would start a
+    brick's rays a few ulp away from where the whole volume's traversal enters the same
+    cell, and move their roots at grazing incidence)."""
+    q = (corner - origin) / spacing
+    nearest = jnp.round(q)
+    rounding = 1e-6 * (jnp.abs(corner) + jnp.abs(origin)) / spacing   # ~8 ulp
+    return jnp.where(jnp.abs(q - nearest) <= rounding, nearest, q)
 
 
 def _log2(size):

@@ -71,7 +71,7 @@ def _iso_face(corners, u, isovalues):
 
 
 def traverse(hierarchy, isovalues, q0, dq, t_start, t_end, *, method="neubauer",
-             max_steps=None, lanes=None):
+             max_steps=None, lanes=None, offset=None):
     """First root of the trilinear field = any isovalue along each ray of a packet.
 
     Args:
@@ -87,20 +87,24 @@ def traverse(hierarchy, isovalues, q0, dq, t_start, t_end, *, method="neubauer",
       lanes: None: one `while_loop` over the packet (until its slowest ray is done); an
         int: the rays run on that many persistent lanes with refill (`jaxiso._lanes`),
         for packets of a whole image. Same results.
+      offset: None, or [3] int32: the hierarchy's cell (0, 0, 0) is cell `offset` of the
+        frame q0 and dq are given in (a brick of a larger volume traced in the whole
+        volume's voxel frame, so that its seams see the same float32 planes and entry t).
 
     Returns:
       t [P] (inf on a miss), hit [P], which [P] int32 (isovalue index, -1 on a miss),
-      cell [P, 3] int32 (min corner of the hit cell), size [P] int32 (its edge in
+      cell [P, 3] int32 (min corner of the hit cell, hierarchy indices), size [P] int32 (its edge in
       voxels, 1 unless level of detail chose a coarse cell), steps [P] int32.
     """
     shape = hierarchy.shape
     n_cells = jnp.array([max(s - 1, 0) for s in shape], jnp.int32)
     if max_steps is None:
         max_steps = 4 * sum(shape) + 64
-    state = _start(hierarchy, n_cells, q0, dq, t_start, t_end, isovalues.shape[0])
+    offset = jnp.zeros(3, jnp.int32) if offset is None else jnp.asarray(offset, jnp.int32)
+    state = _start(hierarchy, n_cells, q0, dq, t_start, t_end, isovalues.shape[0], offset)
 
     def step(s):
-        return _step(hierarchy, isovalues, method, n_cells, s)
+        return _step(hierarchy, isovalues, method, n_cells, offset, s)
 
     out = run_rays(step, lambda s: s["going"], state, _RESULTS, max_steps=max_steps,
                    steps="steps", lanes=lanes)
@@ -110,13 +114,14 @@ def traverse(hierarchy, isovalues, q0, dq, t_start, t_end, *, method="neubauer",
 _RESULTS = ("t_hit", "hit", "which", "cell", "size", "steps")
 
 
-def _start(hierarchy, n_cells, q0, dq, t_start, t_end, n_iso):
+def _start(hierarchy, n_cells, q0, dq, t_start, t_end, n_iso, offset):
     """Per-ray traversal state [P, ...] at the entry point. `side` [P, K] is the sign of
     F - isovalue where the ray left the last cell it intersected (0: not known yet)."""
     p = q0.shape[0]
     start = q0 + jnp.maximum(t_start, 0.0)[:, None] * dq
     start = jnp.where(jnp.isfinite(t_start)[:, None], q0 + t_start[:, None] * dq, start)
-    v0 = jnp.clip(jnp.floor(start).astype(jnp.int32), 0, jnp.maximum(n_cells - 1, 0))
+    v0 = jnp.clip(jnp.floor(start).astype(jnp.int32) - offset, 0,
+                  jnp.maximum(n_cells - 1, 0))
     going = (t_start <= t_end) & jnp.all(n_cells > 0)
     return dict(q0=q0, dq=dq, t_end=t_end, t=jnp.where(going, t_start, jnp.inf), v=v0,
                 going=going, hit=jnp.zeros(p, bool), t_hit=jnp.full(p, jnp.inf, jnp.float32),
@@ -125,8 +130,10 @@ def _start(hierarchy, n_cells, q0, dq, t_start, t_end, n_iso):
                 extra=hierarchy.init(p))
 
 
-def _step(hierarchy, isovalues, method, n_cells, s):
-    """One traversal iteration of every ray of the state (rays not going are unchanged)."""
+def _step(hierarchy, isovalues, method, n_cells, offset, s):
+    """One traversal iteration of every ray of the state (rays not going are unchanged).
+    Cells are indexed in the hierarchy (v, lo); q0 and dq are in the frame where the
+    hierarchy's cell 0 is `offset`."""
     q0, dq, t_end = s["q0"], s["dq"], s["t_end"]
     p = q0.shape[0]
     live, v, t = s["going"], s["v"], s["t"]
@@ -134,11 +141,13 @@ def _step(hierarchy, isovalues, method, n_cells, s):
     at_cell = at_cell & live
     size = jnp.left_shift(1, bits)
     lo = jnp.left_shift(jnp.right_shift(v, bits[:, None]), bits[:, None])
-    t_out, v_next = _exit(q0, dq, lo, size[:, None], v)
+    t_out, v_next = _exit(q0, dq, lo + offset, size[:, None], v + offset)
+    v_next = v_next - offset
 
     def intersect_cells(_):
         corners = hierarchy.cell(extra, lo, bits)
-        return _cell_hits(corners, isovalues, method, s, lo, size, t_out, at_cell)
+        return _cell_hits(corners, isovalues, method, s, lo + offset, size, t_out,
+                          at_cell)
 
     t_root, found, which, side = jax.lax.cond(
         jnp.any(at_cell), intersect_cells,
@@ -160,8 +169,9 @@ def _step(hierarchy, isovalues, method, n_cells, s):
 
 def _cell_hits(corners, isovalues, method, s, lo, size, t_out, at_cell):
     """(t_root, found, which, side) [P] of the rays of state `s` at their cells, the cubes
-    [lo, lo + size] (size > 1 for a coarse, LOD, cell) with corners [P, 8], which they
-    leave at t_out; rays not `at_cell` find nothing and keep their side."""
+    [lo, lo + size] (in the rays' frame; size > 1 for a coarse, LOD, cell) with corners
+    [P, 8], which they leave at t_out; rays not `at_cell` find nothing and keep their
+    side."""
     q0, dq, t_end, t = s["q0"], s["dq"], s["t_end"], s["t"]
     scale = size.astype(jnp.float32)[:, None]
     s1 = jnp.maximum(jnp.minimum(t_out, t_end) - t, 0.0)
