@@ -92,13 +92,15 @@ def _gallery(args) -> int:
     return 0
 
 
-def _render_scene(spec: str, size: int):
-    """(scene, camera, volume data or None) for a --scene spec: implicit:NAME (the
-    catalogue), volume:NAME[:N] (jaxiso.volume.data, N^3 voxels), tets:N (an N^3 cube of
-    Kuhn tets with a sphere's distance field)."""
+def _render_scene(spec: str, size: int, iso=None, spacing=None):
+    """(scene, camera, volume) for a --scene spec: implicit:NAME (the catalogue),
+    volume:NAME[:N] (jaxiso.volume.data, N^3 voxels), volume:FILE (`_volume_file`),
+    tets:N (an N^3 cube of Kuhn tets with a sphere's distance field). For a volume the
+    scene is None and volume is (voxels, spacing [3], origin [3], iso): the caller builds
+    the whole octree or only its own bricks."""
     import numpy as np
 
-    from . import Camera, OctreeVolume, TetIsosurface, VolumeIsosurface, surfaces, tet_mesh
+    from . import Camera, TetIsosurface, surfaces, tet_mesh
     from .tetra import data as tet_data
     from .volume import data as vol_data
 
@@ -106,23 +108,74 @@ def _render_scene(spec: str, size: int):
     if kind == "implicit":
         return surfaces.scene(rest), surfaces.camera(rest, size), None
     if kind == "volume":
-        name, _, n = rest.partition(":")
-        vox = vol_data.examples()[name](int(n or 41))
-        spacing, origin = vol_data.box_geometry(vox.shape, *vol_data.DOMAINS[name])
-        iso = vol_data.ISOVALUES[name]
-        scene = VolumeIsosurface(OctreeVolume.from_array(vox, spacing=spacing, origin=origin,
-                                                         progress=False), iso)
-        lo, hi = np.asarray(scene.lo), np.asarray(scene.hi)
+        if _is_volume_file(rest):
+            vox, spacing, origin = _volume_file(rest, spacing)
+        else:
+            name, _, n = rest.partition(":")
+            vox = vol_data.examples()[name](int(n or 41))
+            spacing, origin = vol_data.box_geometry(vox.shape, *vol_data.DOMAINS[name])
+            iso = vol_data.ISOVALUES[name]
+        spacing, origin = (np.broadcast_to(np.asarray(v, np.float64), (3,))
+                           for v in (spacing, origin))
+        lo, hi = origin, origin + (np.asarray(vox.shape) - 1) * spacing
         mid, ext = (lo + hi) / 2, float(np.max(hi - lo))
         eye = mid + ext * np.array([1.3, 0.9, 0.7])
-        return scene, Camera.look_at(eye, mid, (0, 0, 1), 40.0, size), (vox, spacing,
-                                                                         origin, iso)
+        cam = Camera.look_at(eye, mid, (0, 0, 1), 40.0, size)
+        return None, cam, (vox, spacing, origin, iso)
     if kind == "tets":
         points, tets = tet_data.cube_tets(int(rest or 8))
         scene = TetIsosurface(tet_mesh(points, tets, tet_data.sphere_field(points)), 0.0)
         cam = Camera.look_at((1.9, 1.5, 1.3), (0.5, 0.5, 0.5), (0, 0, 1), 40.0, size)
         return scene, cam, None
     raise ValueError(f"unknown scene kind {kind!r}")
+
+
+VOLUME_FILES = (".npy", ".npz", ".nii", ".nii.gz", ".vti")
+
+
+def _is_volume_file(rest: str) -> bool:
+    return rest.lower().endswith(VOLUME_FILES)
+
+
+def _volume_file(path: str, spacing):
+    """(voxels, spacing, origin) of a volume file: a .npy is memory-mapped (a process
+    that renders bricks reads only its own voxels); other formats are read whole by
+    `jaxiso.io.load_volume`, with the spacing and origin their headers give. `spacing`
+    (the --spacing option, or None) overrides the file's."""
+    import numpy as np
+
+    from .io import load_volume
+
+    if path.lower().endswith(".npy"):
+        vox, meta = np.load(path, mmap_mode="r"), {}
+    else:
+        vox, meta = load_volume(path)
+    if vox.ndim != 3:
+        raise ValueError(f"{path}: need a 3-D volume, got shape {vox.shape}")
+    spacing = spacing if spacing is not None else meta.get("spacing", 1.0)
+    return vox, spacing, meta.get("origin", 0.0)
+
+
+def _volume_scene(volume, bricks):
+    """The whole volume's scene, or (bricks: a grid or "x") this process's bricks."""
+    import numpy as np
+
+    from . import OctreeVolume, VolumeIsosurface, distributed
+    from .volume import brick_volume
+
+    vox, spacing, origin, iso = volume
+    if bricks is None:
+        return VolumeIsosurface(OctreeVolume.from_array(np.asarray(vox), spacing=spacing,
+                                                        origin=origin, progress=False), iso)
+    grid = None if bricks == "x" else tuple(int(g) for g in bricks.split(","))
+    return brick_volume(vox, iso, distributed.process_mesh("bricks"), grid=grid,
+                        spacing=spacing, origin=origin)
+
+
+def _bricks_note(scene, bricks) -> str:
+    if bricks is None:
+        return ""
+    return f" in bricks {'x'.join(str(g) for g in scene.grid)}"
 
 
 def _render_one(args) -> int:
@@ -136,14 +189,15 @@ def _render_one(args) -> int:
                                heartbeat_timeout_seconds=args.heartbeat)
     rank, n_proc = jax.process_index(), jax.process_count()
     mesh = distributed.process_mesh() if len(jax.devices()) > 1 else None
-    scene, cam, volume = _render_scene(args.scene, args.size)
+    scene, cam, volume = _render_scene(args.scene, args.size, args.iso, args.spacing)
     devices = mesh
+    if volume is not None:
+        try:
+            scene = _volume_scene(volume, args.bricks)
+        except ValueError as err:  # e.g. a brick grid that does not match the devices
+            print(f"jaxiso render: error: {err}", file=sys.stderr)
+            return 2
     if args.bricks:
-        from .volume import brick_volume
-
-        vox, spacing, origin, iso = volume
-        scene = brick_volume(vox, iso, distributed.process_mesh("bricks"),
-                             spacing=spacing, origin=origin)
         devices = None  # the data is split, not the rays
     t0 = time.perf_counter()
     img = render(scene, cam, devices=devices)
@@ -151,7 +205,7 @@ def _render_one(args) -> int:
     where = "" if mesh is None else f" over {mesh.devices.size} devices"
     held = _local_nbytes(scene)
     print(f"jaxiso render: process {rank}/{n_proc}{where}, {args.scene} "
-          f"{args.size}x{args.size}{' in bricks' if args.bricks else ''}: "
+          f"{args.size}x{args.size}{_bricks_note(scene, args.bricks)}: "
           f"{t_render:.2f} s (incl. compile), scene arrays here {held / 2**20:.2f} MiB",
           flush=True)
     if rank == 0 and args.out:
@@ -231,6 +285,11 @@ def _check_render(args, parser) -> None:
     kind, _, rest = args.scene.partition(":")
     name, _, n = rest.partition(":")
     known = {"implicit": surfaces.names(), "volume": list(vol_data.examples())}
+    if kind == "volume" and _is_volume_file(rest):
+        _check_volume_file(rest, args, parser)
+        name, n, known = None, "", {}
+    elif args.iso is not None or args.spacing is not None:
+        parser.error("--iso and --spacing go with --scene volume:FILE")
     if kind not in ("implicit", "volume", "tets"):
         parser.error(f"--scene {args.scene}: kind must be implicit, volume or tets")
     if kind in known and name not in known[kind]:
@@ -239,13 +298,30 @@ def _check_render(args, parser) -> None:
     count = rest if kind == "tets" else n
     if count and (not count.isdigit() or int(count) < 2):
         parser.error(f"--scene {args.scene}: the size must be an int >= 2")
-    if args.bricks and kind != "volume":
+    if args.bricks is not None and kind != "volume":
         parser.error("--bricks splits volumes only")
+    if args.bricks not in (None, "x") and not _is_grid(args.bricks):
+        parser.error(f"--bricks {args.bricks}: give a grid GX,GY,GZ of ints >= 1 "
+                     "(e.g. 2,2,1), or nothing for one brick per device along x")
     if not MIN_SIZE <= args.size <= MAX_SIZE:
         parser.error(f"--size must be in [{MIN_SIZE}, {MAX_SIZE}], got {args.size}")
     given = [args.num_processes is not None, args.process_id is not None]
     if args.coordinator and not all(given):
         parser.error("--coordinator needs --num-processes and --process-id")
+
+
+def _check_volume_file(path, args, parser) -> None:
+    if not os.path.isfile(path):
+        parser.error(f"--scene volume:{path}: no such file")
+    if args.iso is None:
+        parser.error(f"--scene volume:{path}: give the isovalue with --iso")
+    if args.spacing is not None and not args.spacing > 0:
+        parser.error(f"--spacing must be > 0, got {args.spacing}")
+
+
+def _is_grid(text: str) -> bool:
+    parts = text.split(",")
+    return len(parts) == 3 and all(p.isdigit() and int(p) >= 1 for p in parts)
 
 
 def _check_out(out: str, parser) -> None:
@@ -282,15 +358,20 @@ def main(argv=None) -> int:
                          help="override each surface's default arithmetic")
     one = sub.add_parser("render", parents=[common], help="render one scene, on one or N processes")
     one.add_argument("--scene", default="implicit:sphere",
-                     help="implicit:NAME | volume:NAME[:N] | tets:N (default implicit:sphere)")
+                     help="implicit:NAME | volume:NAME[:N] | volume:FILE (.npy memory-mapped;"
+                     " .npz, .nii[.gz], .vti) | tets:N (default implicit:sphere)")
+    one.add_argument("--iso", type=float, help="isovalue of a volume:FILE scene")
+    one.add_argument("--spacing", type=float,
+                     help="voxel spacing of a volume:FILE scene (default: the file's, or 1)")
     one.add_argument("--size", type=int, default=256, help="image edge in pixels")
     one.add_argument("--out", default="render.png", help="PNG written by process 0")
     one.add_argument("--npz", help="image and hits (.npz) by process 0; a path with "
                      "{process} is written by every process")
     one.add_argument("--hits", action="store_true",
                      help="also store the camera rays' hits (intersect) in --npz")
-    one.add_argument("--bricks", action="store_true",
-                     help="volume only: one brick of the voxels per device")
+    one.add_argument("--bricks", nargs="?", const="x", metavar="GX,GY,GZ",
+                     help="volume only: one brick of the voxels per device, cut along x, "
+                     "or a grid such as 2,2,1 (its product = the number of devices)")
     one.add_argument("--distributed", action="store_true",
                      help="join a multi-process run detected from SLURM / Open MPI")
     one.add_argument("--coordinator", help="host:port of process 0 (local processes)")

@@ -423,3 +423,38 @@ def test_two_bricks_each_fit_half_the_memory_of_the_whole_volume(tmp_path, two_p
         assert got["read"] <= (n // 2 + 1) * n * n, (k, got["read"])
         held = int(got["peak"] - got["base"])
         assert held <= 0.65 * whole, (k, held, whole)
+
+
+def test_cli_renders_a_volume_file_in_a_brick_grid(tmp_path, capsys):
+    """`jaxiso render --scene volume:FILE.npy --iso ... --bricks 2,2,1` in one process with
+    4 CPU devices (the file memory-mapped, each device one brick) gives the hits of the
+    same file rendered whole, bit for bit; bad grids and a missing --iso are refused."""
+    import jax
+
+    from jaxiso import cli
+    from jaxiso.volume import data
+
+    path = tmp_path / "ml.npy"
+    np.save(path, data.marschner_lobb(25))
+    base = ["render", "--scene", f"volume:{path}", "--size", "24", "--out", "", "--no-cache"]
+    env = dict(_env(), XLA_FLAGS="--xla_force_host_platform_device_count=4")
+    runs = {}
+    for name, extra in (("whole", []), ("grid", ["--bricks", "2,2,1"])):
+        out = subprocess.run([sys.executable, "-m", "jaxiso.cli", *base, "--hits", "--iso",
+                              "0.5", "--npz", str(tmp_path / f"{name}.npz"), *extra],
+                             env=env, capture_output=True, text=True, timeout=TIMEOUT)
+        assert out.returncode == 0, out.stderr[-3000:]
+        runs[name] = np.load(tmp_path / f"{name}.npz")
+    assert "in bricks 2x2x1" in out.stdout
+    assert runs["whole"]["hit"].sum() > 50
+    for key in ("hit", "t", "normal", "surface"):
+        np.testing.assert_array_equal(runs["grid"][key], runs["whole"][key], err_msg=key)
+    capsys.readouterr()
+    for extra, message in ((["--iso", "0.5", "--bricks", "2,2"], "give a grid"),
+                           ([], "give the isovalue with --iso")):
+        with pytest.raises(SystemExit) as stop:  # argparse's errors: status 2, before JAX
+            cli.main(base + extra)
+        assert stop.value.code == 2 and message in capsys.readouterr().err
+    n = len(jax.devices()) + 1  # a grid that does not match this process's devices
+    assert cli.main(base + ["--iso", "0.5", "--bricks", f"{n},1,1"]) == 2
+    assert f"{n} bricks for" in capsys.readouterr().err
