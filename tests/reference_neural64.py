@@ -106,17 +106,24 @@ def cached_first_hits(path, origins, directions, cache_dir, label, lo=(-1.0,) * 
     """`first_hits` of the network in `path`, read from / written to
     ``<cache_dir>/<label>_<key>.npz`` (`cache_key`). Returns (t [N], seconds it took,
     0 when read from the cache)."""
-    import time
-
     key = cache_key(path, origins, directions, lo, hi, samples, tol)
     file = os.path.join(os.fspath(cache_dir), f"{label}_{key}.npz")
+    return cached_array(file, lambda: first_hits(load_npz64(path), origins, directions, lo,
+                                                 hi, samples=samples, tol=tol))
+
+
+def cached_array(file, compute):
+    """compute() -> array, read from / written to the .npz `file`. Returns (array,
+    seconds compute took, 0 when read from the file)."""
+    import time
+
     if os.path.exists(file):
         with np.load(file) as data:
             return np.asarray(data["t"]), 0.0
     t0 = time.perf_counter()
-    t = first_hits(load_npz64(path), origins, directions, lo, hi, samples=samples, tol=tol)
+    t = compute()
     seconds = time.perf_counter() - t0
-    os.makedirs(os.fspath(cache_dir), exist_ok=True)
+    os.makedirs(os.path.dirname(file) or ".", exist_ok=True)
     tmp = file + ".tmp.npz"  # write then rename: a killed run leaves no half file
     np.savez(tmp, t=t, seconds=seconds)
     os.replace(tmp, file)
