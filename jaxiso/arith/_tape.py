@@ -20,6 +20,7 @@ no longer reachable from the output are dropped (the tape is compacted).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import jax
@@ -171,74 +172,91 @@ def from_function(f, n_vars: int) -> Tape:
     from ._extend import flat_program  # all jaxpr access lives in _extend
 
     nodes, out = flat_program(f, n_vars)
-    ops: list = []
+    ops = _Instructions()
     where: dict = {}  # node index -> tape index
+    for k, node in enumerate(nodes):
+        index = _emit_node(ops, where, node)
+        if index is not None:
+            where[k] = index
+    if out not in where:
+        raise NotImplementedError("tape: the result is not a scalar number")
+    return tidy(ops.entries, where[out], n_vars)
 
-    def emit(name, a=0, b=0, imm=0.0):
-        ops.append((name, a, b, imm))
-        return len(ops) - 1
 
-    def const(value):
-        return emit("const", imm=float(value))
+class _Instructions:
+    """The ``(opname, a, b, imm)`` list of a tape being built (SSA order)."""
 
-    def power(x, y: int):
+    def __init__(self):
+        self.entries: list = []
+
+    def emit(self, name, a=0, b=0, imm=0.0) -> int:
+        """Append one instruction; its index."""
+        self.entries.append((name, a, b, imm))
+        return len(self.entries) - 1
+
+    def const(self, value) -> int:
+        return self.emit("const", imm=float(value))
+
+    def power(self, x: int, y: int) -> int:
+        """x ** y for a Python int y: 1, 1 / x ** -y, x, square or ipow."""
         if y == 0:
-            return const(1.0)
+            return self.const(1.0)
         if y < 0:
-            return emit("div", const(1.0), power(x, -y))
+            return self.emit("div", self.const(1.0), self.power(x, -y))
         if y == 1:
             return x
         if y == 2:
-            return emit("square", x)
+            return self.emit("square", x)
         if y > MAX_IPOW:
             raise NotImplementedError(f"tape: integer power {y} > {MAX_IPOW}")
-        return emit("ipow", x, imm=float(y))
+        return self.emit("ipow", x, imm=float(y))
 
-    for k, node in enumerate(nodes):
-        kind = node[0]
-        if kind == "input":
-            where[k] = emit("var", node[1])
-            continue
-        if kind == "const":
-            v = node[1]
-            if v.shape != () or not np.issubdtype(v.dtype, np.floating) and \
-                    not np.issubdtype(v.dtype, np.integer):
-                continue  # non-scalar constants may only feed folded equations
-            where[k] = const(v)
-            continue
-        name, params, args = node
-        for i in args:
-            if i not in where:
-                raise NotImplementedError(f"tape: primitive '{name}' reads a non-scalar or "
-                                          "non-numeric constant")
-        ins = [where[i] for i in args]
-        if name in _IDENTITY_PRIMS:
-            dtype = params.get("new_dtype", jnp.float32)
-            if dtype is not None and not jnp.issubdtype(dtype, jnp.floating):
-                raise NotImplementedError(f"tape: conversion to {dtype}")
-            where[k] = ins[0]
-        elif name in _UNARY_PRIMS:
-            where[k] = emit(_UNARY_PRIMS[name], ins[0])
-        elif name in _BINARY_PRIMS:
-            x, y = ins
-            if x == y and name == "mul":
-                where[k] = emit("square", x)
-            elif x == y and name == "sub":
-                where[k] = const(0.0)
-            else:
-                where[k] = emit(_BINARY_PRIMS[name], x, y)
-        elif name == "integer_pow":
-            where[k] = power(ins[0], int(params["y"]))
-        elif name == "pow" and ops[ins[1]][0] == "const" and \
-                float(ops[ins[1]][3]).is_integer():
-            where[k] = power(ins[0], int(ops[ins[1]][3]))
-        else:
-            raise NotImplementedError(
-                f"tape: no opcode for the JAX primitive '{name}' (the tape knows "
-                f"{', '.join(OPS)}); this function stays on the straight path")
-    if out not in where:
-        raise NotImplementedError("tape: the result is not a scalar number")
-    return tidy(ops, where[out], n_vars)
+
+def _emit_node(ops: _Instructions, where: dict, node) -> int | None:
+    """Emit the instructions of one `flat_program` node; the tape index of its value, or
+    None for a constant the tape does not hold (non-scalar: it may only feed folded
+    equations)."""
+    kind = node[0]
+    if kind == "input":
+        return ops.emit("var", node[1])
+    if kind == "const":
+        v = node[1]
+        if v.shape != () or not np.issubdtype(v.dtype, np.floating) and \
+                not np.issubdtype(v.dtype, np.integer):
+            return None
+        return ops.const(v)
+    name, params, args = node
+    for i in args:
+        if i not in where:
+            raise NotImplementedError(f"tape: primitive '{name}' reads a non-scalar or "
+                                      "non-numeric constant")
+    return _emit_primitive(ops, name, params, [where[i] for i in args])
+
+
+def _emit_primitive(ops: _Instructions, name: str, params, ins) -> int:
+    """Emit JAX primitive `name` on the tape values `ins`; the tape index of its result."""
+    if name in _IDENTITY_PRIMS:
+        dtype = params.get("new_dtype", jnp.float32)
+        if dtype is not None and not jnp.issubdtype(dtype, jnp.floating):
+            raise NotImplementedError(f"tape: conversion to {dtype}")
+        return ins[0]
+    if name in _UNARY_PRIMS:
+        return ops.emit(_UNARY_PRIMS[name], ins[0])
+    if name in _BINARY_PRIMS:
+        x, y = ins
+        if x == y and name == "mul":
+            return ops.emit("square", x)
+        if x == y and name == "sub":
+            return ops.const(0.0)
+        return ops.emit(_BINARY_PRIMS[name], x, y)
+    if name == "integer_pow":
+        return ops.power(ins[0], int(params["y"]))
+    if name == "pow" and ops.entries[ins[1]][0] == "const" and \
+            float(ops.entries[ins[1]][3]).is_integer():
+        return ops.power(ins[0], int(ops.entries[ins[1]][3]))
+    raise NotImplementedError(
+        f"tape: no opcode for the JAX primitive '{name}' (the tape knows "
+        f"{', '.join(OPS)}); this function stays on the straight path")
 
 
 def tidy(ops, out: int, n_vars: int) -> Tape:
@@ -354,9 +372,7 @@ def _select(opset, o, cases):
     """cases[position of o in opset] per region (o: [R], cases: [R, P, ...] each)."""
     if len(cases) == 1:
         return cases[0]
-    lookup = np.zeros(len(OPS), np.int32)
-    lookup[list(opset)] = np.arange(len(opset))
-    which = jnp.asarray(lookup)[o].reshape((-1,) + (1,) * (cases[0].ndim - 1))
+    which = jnp.asarray(_opcode_positions(opset))[o].reshape((-1,) + (1,) * (cases[0].ndim - 1))
     return lax.select_n(jnp.broadcast_to(which, cases[0].shape), *cases)
 
 
@@ -396,92 +412,122 @@ def evaluate(tape: Tape, coords, record: bool = False):
     opcode in `opset` and selects; with affine rules that is 8-9x the interval cost on
     CPU (benchmarks/NOTES.md, Session 8), not (n + 2) / 2.
     """
-    if len(coords) != tape.n_vars:
-        raise ValueError(f"the tape reads {tape.n_vars} coordinates, got {len(coords)}")
-    kind = type(coords[0])
-    if any(type(c) is not kind for c in coords) and kind in (Interval, Affine):
-        raise TypeError("the coordinates must all be points, all Intervals or all Affine")
-    if record and kind not in (Interval, Affine):
-        raise ValueError("record=True needs interval or affine coordinates")
+    kind = _coordinate_kind(coords, tape.n_vars, record)
     L, R = tape.op.shape
     if tape.reg is None:
         raise ValueError("the tape has no registers (`allocate`)")
     K = tape.registers
     cstack = _coordinate_parts(coords, kind, R)
-    shape = cstack[0].shape[1:]
     n_sym = coords[0].n if kind is Affine else 0
     rows = jnp.arange(R)
     # one register file: the value's parts side by side
-    C = len(cstack)
-    P = shape[-1]
-    regs = jnp.zeros((K, R, C * P), jnp.float32)
-    choices = jnp.zeros((L, R, P), jnp.int8) if record else None
-
-    def parts(v):
-        return [v[:, c * P:(c + 1) * P] for c in range(C)]
-
-    def value(p):
-        if kind is Interval:
-            return Interval(p[0], p[1])
-        if kind is Affine:
-            return Affine(p[0], jnp.stack(p[1:1 + n_sym], axis=-1), p[1 + n_sym])
-        return p[0]
-
-    def flat(o, cases):
-        """The parts ([R, P] each) of the case that each region's opcode o selects."""
-        if kind is Interval:
-            return [_select(tape.opset, o, [c.lo for c in cases]),
-                    _select(tape.opset, o, [c.hi for c in cases])]
-        if kind is Affine:
-            dev = _select(tape.opset, o, [c.dev for c in cases])
-            return ([_select(tape.opset, o, [c.center for c in cases])]
-                    + [dev[..., k] for k in range(n_sym)]
-                    + [_select(tape.opset, o, [c.err for c in cases])])
-        return [_select(tape.opset, o, cases)]
-
-    rule = _point_cases if kind not in (Interval, Affine) else _enclosure_cases
-    table = _point_table if kind not in (Interval, Affine) else _enclosure_table
-    lookup = np.zeros(len(OPS), np.int32)
-    lookup[list(tape.opset)] = np.arange(len(tape.opset))
-
-    def one_region(o, A, B, imm, var):
-        """A single region (R = 1, e.g. a root shared by all its children): only the
-        opcode's own rule runs (lax.switch), not every rule of the opset (Prospero's
-        root level: 1.35 s of 4.3 s at 128^2 before)."""
-        cases = [lambda c=c: _flat_parts(table(A, B, imm, var)[c]()) for c in tape.opset]
-        return lax.switch(jnp.asarray(lookup)[o[0]], cases)
-
-    def body(i, carry):
-        regs, choices = carry
-        o, a = tape.op[i], tape.a[i]
-        ra, rb, rd = (jnp.clip(tape.reg[i, k], 0, K - 1) for k in range(3))
-        rd = jnp.where(i < tape.n, rd, K)  # past a tape's end: written nowhere
-        imm = tape.imm[i][:, None]
-        if record:
-            # both operands by one gather into a fresh [2, R, C P] array: read as two
-            # slices fused into their readers, the choices' store made XLA copy the
-            # whole register file twice a step (Prospero's root, 1024 boxes: 75 us a
-            # step, against 10 us so; without choices the slices are faster, 3.7 us)
-            ab = regs[jnp.stack([ra, rb]), rows[None]]
-            A, B = value(parts(ab[0])), value(parts(ab[1]))
-        else:
-            A, B = value(parts(regs[ra, rows])), value(parts(regs[rb, rows]))
-        var = value([c[jnp.clip(a, 0, tape.n_vars - 1), rows] for c in cstack])
-        if R == 1 and len(tape.opset) > 1:
-            out = one_region(o, A, B, imm, var)
-        else:
-            out = flat(o, rule(tape.opset, A, B, imm, var))
-        regs = regs.at[rd, rows].set(jnp.concatenate(out, axis=-1), mode="drop")
-        if record:
-            choices = lax.dynamic_update_index_in_dim(choices, _choice(o, A, B), i, 0)
-        return regs, choices
-
-    regs, choices = lax.fori_loop(0, jnp.max(tape.n), body, (regs, choices))
+    packing = _Packing(kind, len(cstack), cstack[0].shape[-1], n_sym)
+    regs = jnp.zeros((K, R, packing.parts * packing.width), jnp.float32)
+    choices = jnp.zeros((L, R, packing.width), jnp.int8) if record else None
+    step = functools.partial(_step, tape, packing, cstack, rows, record)
+    regs, choices = lax.fori_loop(0, jnp.max(tape.n), step, (regs, choices))
     last = jnp.clip(tape.n - 1, 0, L - 1)
-    result = value(parts(regs[jnp.clip(tape.reg[last, 2, rows], 0, K - 1), rows]))
+    result = packing.unpack(regs[jnp.clip(tape.reg[last, 2, rows], 0, K - 1), rows])
     if record:
         return result, choices
     return result
+
+
+def _coordinate_kind(coords, n_vars: int, record: bool) -> type:
+    """The one type of `evaluate`'s coordinates (an array type, Interval or Affine)."""
+    if len(coords) != n_vars:
+        raise ValueError(f"the tape reads {n_vars} coordinates, got {len(coords)}")
+    kind = type(coords[0])
+    if any(type(c) is not kind for c in coords) and kind in (Interval, Affine):
+        raise TypeError("the coordinates must all be points, all Intervals or all Affine")
+    if record and kind not in (Interval, Affine):
+        raise ValueError("record=True needs interval or affine coordinates")
+    return kind
+
+
+@dataclasses.dataclass(frozen=True)
+class _Packing:
+    """How `evaluate` holds a value in a register-file row [R, parts x width]: its parts
+    ([R, width] each) side by side: a point's value, an interval's (lo, hi), an affine
+    form's (center, dev_0, ..., dev_{n_sym-1}, err)."""
+
+    kind: type
+    parts: int
+    width: int
+    n_sym: int
+
+    def value(self, p):
+        """The value of parts p ([R, width] each)."""
+        if self.kind is Interval:
+            return Interval(p[0], p[1])
+        if self.kind is Affine:
+            return Affine(p[0], jnp.stack(p[1:1 + self.n_sym], axis=-1), p[1 + self.n_sym])
+        return p[0]
+
+    def unpack(self, row):
+        """The value of a register-file row [R, parts x width]."""
+        P = self.width
+        return self.value([row[:, c * P:(c + 1) * P] for c in range(self.parts)])
+
+    def selected(self, opset, o, cases):
+        """The parts ([R, width] each) of the case that each region's opcode o ([R])
+        selects among `cases` (one value per opcode of `opset`)."""
+        if self.kind is Interval:
+            return [_select(opset, o, [c.lo for c in cases]),
+                    _select(opset, o, [c.hi for c in cases])]
+        if self.kind is Affine:
+            dev = _select(opset, o, [c.dev for c in cases])
+            return ([_select(opset, o, [c.center for c in cases])]
+                    + [dev[..., k] for k in range(self.n_sym)]
+                    + [_select(opset, o, [c.err for c in cases])])
+        return [_select(opset, o, cases)]
+
+
+def _step(tape: Tape, packing: _Packing, cstack, rows, record: bool, i, carry):
+    """Instruction i of every tape (`evaluate`'s loop body): read the operands, compute,
+    write the result's register; with `record`, store the min/max choices [R, P] at i.
+    carry: (register file [K, R, parts x P], choices [L, R, P] or None)."""
+    regs, choices = carry
+    K = tape.registers
+    o, a = tape.op[i], tape.a[i]
+    ra, rb, rd = (jnp.clip(tape.reg[i, k], 0, K - 1) for k in range(3))
+    rd = jnp.where(i < tape.n, rd, K)  # past a tape's end: written nowhere
+    imm = tape.imm[i][:, None]
+    if record:
+        # both operands by one gather into a fresh [2, R, C P] array: read as two
+        # slices fused into their readers, the choices' store made XLA copy the
+        # whole register file twice a step (Prospero's root, 1024 boxes: 75 us a
+        # step, against 10 us so; without choices the slices are faster, 3.7 us)
+        ab = regs[jnp.stack([ra, rb]), rows[None]]
+        A, B = packing.unpack(ab[0]), packing.unpack(ab[1])
+    else:
+        A, B = packing.unpack(regs[ra, rows]), packing.unpack(regs[rb, rows])
+    var = packing.value([c[jnp.clip(a, 0, tape.n_vars - 1), rows] for c in cstack])
+    if tape.op.shape[1] == 1 and len(tape.opset) > 1:
+        out = _one_region_parts(tape.opset, packing.kind, o, A, B, imm, var)
+    else:
+        rule = _enclosure_cases if packing.kind in (Interval, Affine) else _point_cases
+        out = packing.selected(tape.opset, o, rule(tape.opset, A, B, imm, var))
+    regs = regs.at[rd, rows].set(jnp.concatenate(out, axis=-1), mode="drop")
+    if record:
+        choices = lax.dynamic_update_index_in_dim(choices, _choice(o, A, B), i, 0)
+    return regs, choices
+
+
+def _one_region_parts(opset, kind, o, A, B, imm, var):
+    """The parts of a single region's result (R = 1, e.g. a root shared by all its
+    children): only the opcode's own rule runs (lax.switch), not every rule of the opset
+    (Prospero's root level: 1.35 s of 4.3 s at 128^2 before)."""
+    table = _enclosure_table if kind in (Interval, Affine) else _point_table
+    cases = [lambda c=c: _flat_parts(table(A, B, imm, var)[c]()) for c in opset]
+    return lax.switch(jnp.asarray(_opcode_positions(opset))[o[0]], cases)
+
+
+def _opcode_positions(opset):
+    """opcode -> its position in `opset` (numpy int32 [len(OPS)], 0 for the others)."""
+    lookup = np.zeros(len(OPS), np.int32)
+    lookup[list(opset)] = np.arange(len(opset))
+    return lookup
 
 
 def _flat_parts(v):
