@@ -21,7 +21,6 @@ ALLOWED_PRIVATE: set = set()
 
 # functions longer than MAX_LINES, left to shorten (file, name)
 ALLOWED_LONG = {
-    ("arith/_tape.py", "prune"),
     ("implicit/_tape_rays.py", "intersect_rays"), ("implicit/_tape_rays.py", "_level"),
     ("implicit/program.py", "cast"),
 }

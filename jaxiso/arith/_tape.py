@@ -572,23 +572,36 @@ def prune(tape: Tape, choice) -> Tape:
     not reachable from the output dropped, and the rest moved to the front in order (new
     n). On the region, the pruned tape computes the same values as the tape (same
     operations in the same order on the surviving path)."""
-    L, R = tape.op.shape
-    # Three loops over instructions, each touching O(R) elements per step and carrying a
-    # single flat buffer (XLA updates it in place; whole-array gathers and scatters were
-    # 10x slower on CPU). Layout [L, R]: step i reads and writes row i.
-    op, a, b, imm = tape.op, tape.a, tape.b, tape.imm
-    rows = jnp.arange(R, dtype=jnp.int32)
+    # Three loops over instructions (`_resolve`, `_kept`, `_compact`), each touching O(R)
+    # elements per step and carrying a single flat buffer (XLA updates it in place;
+    # whole-array gathers and scatters were 10x slower on CPU). Layout [L, R]: step i
+    # reads and writes row i.
+    op = tape.op
+    rows = jnp.arange(op.shape[1], dtype=jnp.int32)
     has_a = op >= FIRST_UNARY
     has_b = op >= FIRST_BINARY
     minmax = (op == MIN) | (op == MAX)
     pick = jnp.where(minmax, choice, 0).astype(jnp.int32)
+    resolved, top = _resolve(tape, has_a, has_b, pick, rows)
+    keep = _kept(tape.n, pick, has_a, has_b, resolved, rows, top)
+    dense, new_n = _compact(tape, has_a, has_b, resolved, keep, rows, top)
+    reg = _pruned_registers(dense, new_n, tape.registers)
+    return Tape(dense[0], dense[1], dense[2], lax.bitcast_convert_type(dense[3], jnp.float32),
+                new_n, tape.opset, tape.n_vars, reg, tape.registers)
+
+
+def _resolve(tape: Tape, has_a, has_b, pick, rows):
+    """Pruning's forward pass: each value's resolution (itself, or what a decided min/max
+    takes; the operands are earlier, so one pass resolves chains) and the resolved
+    operands. pick: int32 [L, R] (1/2: a decided min/max's operand, else 0).
+
+    Returns ((res, a2, b2) int32 [L, R] each, top: the loops' bound, the largest n)."""
+    L, R = tape.op.shape
+    a, b = tape.a, tape.b
     a_safe = jnp.where(has_a, a, 0)
     b_safe = jnp.where(has_b, b, 0)
     LR = L * R
-    n = tape.n
 
-    # 1. forward: each value's resolution (itself, or what a decided min/max takes; the
-    #    operands are earlier, so one pass resolves chains), and resolved operands
     def fwd(i, buf):
         ra = buf[a_safe[i] * R + rows]
         rb = buf[b_safe[i] * R + rows]
@@ -597,13 +610,20 @@ def prune(tape: Tape, choice) -> Tape:
         buf = lax.dynamic_update_slice(buf, jnp.where(has_a[i], ra, a[i]), (LR + i * R,))
         return lax.dynamic_update_slice(buf, jnp.where(has_b[i], rb, b[i]), (2 * LR + i * R,))
 
-    top = jnp.max(n)  # rows past every n are not visited
+    top = jnp.max(tape.n)  # rows past every n are not visited
     buf = lax.fori_loop(0, top, fwd, jnp.zeros(3 * LR, jnp.int32))
-    res, a2, b2 = (buf[k * LR:(k + 1) * LR].reshape(L, R) for k in range(3))
+    return tuple(buf[k * LR:(k + 1) * LR].reshape(L, R) for k in range(3)), top
+
+
+def _kept(n, pick, has_a, has_b, resolved, rows, top):
+    """Pruning's backward pass: the instructions kept ([L, R] bool): live (read from the
+    output through kept instructions' resolved operands), not a decided min/max, and
+    within the tape's n ([R])."""
+    res, a2, b2 = resolved
+    L, R = res.shape
+    LR = L * R
     own = pick == 0
     out = res[jnp.clip(n - 1, 0, L - 1), rows]
-
-    # 2. backward: liveness from the output through kept instructions' operands
     srcs = jnp.concatenate([jnp.where(has_a & own, a2, L), jnp.where(has_b & own, b2, L)],
                            axis=1)  # [L, 2R]
     rows2 = jnp.concatenate([rows, rows])
@@ -617,22 +637,23 @@ def prune(tape: Tape, choice) -> Tape:
 
     live0 = jnp.zeros(LR, jnp.int8).at[out * R + rows].set(1)
     live = lax.fori_loop(0, top, back, live0).reshape(L, R)
-    keep = (live == 1) & own & (jnp.arange(L)[:, None] < n[None, :])
-    imm_bits = lax.bitcast_convert_type(imm, jnp.int32)
+    return (live == 1) & own & (jnp.arange(L)[:, None] < n[None, :])
 
-    # 3. compaction: kept instruction i moves to the region's next free slot with its
-    #    operands renumbered. First the new positions (a running count per region), then
-    #    one scatter per instruction.
-    def count(i, carry):
-        buf, cnt = carry  # the small counters apart: a read-then-write of one buffer
-        return (lax.dynamic_update_slice(buf, cnt, (i * R,)),  # made XLA copy it per step
-                cnt + keep[i].astype(jnp.int32))
 
-    pos, new_n = lax.fori_loop(0, top, count, (jnp.zeros(LR, jnp.int32),
-                                             jnp.zeros(R, jnp.int32)))
-    new_a = jnp.where(has_a, pos[jnp.where(has_a, a2, 0) * R + rows], a)
-    new_b = jnp.where(has_b, pos[jnp.where(has_b, b2, 0) * R + rows], b)
-    fields = jnp.stack([op, new_a, new_b, imm_bits], axis=1).reshape(L, 4 * R)
+def _compact(tape: Tape, has_a, has_b, resolved, keep, rows, top):
+    """Pruning's compaction: kept instruction i moves to its region's next free slot with
+    its operands renumbered, one scatter per instruction.
+
+    Returns (int32 [4, L, R]: op, a, b and imm's bits, padded with ``const 0``; new n
+    [R])."""
+    L, R = keep.shape
+    LR = L * R
+    _, a2, b2 = resolved
+    imm_bits = lax.bitcast_convert_type(tape.imm, jnp.int32)
+    pos, new_n = _new_positions(keep, top)
+    new_a = jnp.where(has_a, pos[jnp.where(has_a, a2, 0) * R + rows], tape.a)
+    new_b = jnp.where(has_b, pos[jnp.where(has_b, b2, 0) * R + rows], tape.b)
+    fields = jnp.stack([tape.op, new_a, new_b, imm_bits], axis=1).reshape(L, 4 * R)
     F = LR + R  # each field: [L + 1, R], row L for the dropped
     offsets = jnp.repeat(jnp.arange(4, dtype=jnp.int32) * F, R)
     rows4 = jnp.tile(rows, 4)
@@ -648,7 +669,27 @@ def prune(tape: Tape, choice) -> Tape:
 
     init = jnp.concatenate([jnp.full(F, CONST, jnp.int32), jnp.zeros(3 * F, jnp.int32)])
     dense = lax.fori_loop(0, top, scatter, init).reshape(4, L + 1, R)[:, :L]
-    K = tape.registers
+    return dense, new_n
+
+
+def _new_positions(keep, top):
+    """Where each kept instruction goes: a running count per region (int32 [L R], flat)
+    and the count of kept instructions, the new n [R]."""
+    L, R = keep.shape
+
+    def count(i, carry):
+        buf, cnt = carry  # the small counters apart: a read-then-write of one buffer
+        return (lax.dynamic_update_slice(buf, cnt, (i * R,)),  # made XLA copy it per step
+                cnt + keep[i].astype(jnp.int32))
+
+    return lax.fori_loop(0, top, count, (jnp.zeros(L * R, jnp.int32),
+                                         jnp.zeros(R, jnp.int32)))
+
+
+def _pruned_registers(dense, new_n, registers: int):
+    """Registers [L, 3, R] of the pruned tapes (dense: op, a, b, ... [4, L, R]) in a file
+    of `registers`."""
+    L, R = dense.shape[1:]
 
     def in_order(_):  # every instruction its own register: valid when all fit the file
         return jnp.stack([dense[1], dense[2], jnp.broadcast_to(
@@ -656,10 +697,9 @@ def prune(tape: Tape, choice) -> Tape:
 
     # the scan only where some pruned tape is longer than the file (on the 2D path most
     # are short, and the scan cost more than it saved)
-    reg = lax.cond(jnp.max(new_n) <= K, in_order,
-                   lambda _: allocate(dense[0], dense[1], dense[2], new_n, K)[0], None)
-    return Tape(dense[0], dense[1], dense[2], lax.bitcast_convert_type(dense[3], jnp.float32),
-                new_n, tape.opset, tape.n_vars, reg, tape.registers)
+    return lax.cond(jnp.max(new_n) <= registers, in_order,
+                    lambda _: allocate(dense[0], dense[1], dense[2], new_n, registers)[0],
+                    None)
 
 
 def allocate(op, a, b, n, registers: int):
