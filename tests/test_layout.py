@@ -20,10 +20,7 @@ MAX_LINES = 60
 ALLOWED_PRIVATE: set = set()
 
 # functions longer than MAX_LINES, left to shorten (file, name)
-ALLOWED_LONG = {
-    ("implicit/_tape_rays.py", "intersect_rays"), ("implicit/_tape_rays.py", "_level"),
-    ("implicit/program.py", "cast"),
-}
+ALLOWED_LONG = {("implicit/program.py", "cast")}
 
 
 def _modules():

@@ -31,6 +31,7 @@ Rays that share a group should be near each other (`render` orders them in Z-ord
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -113,6 +114,32 @@ def _level(tapes, reg, seg, lo, hi, rest, iso, first, G, q, h, arithmetic):
     so far) updated."""
     _, _, inside, p, D, fine = seg
     Gc = G // q
+    g, s0, s1, valid = _child_slabs(reg, fine, q, h, single=Gc == 1 and q == 1)
+    idx = g[..., None] * Gc + jnp.arange(Gc)                  # [R, C, Gc]
+    ok = inside[idx]
+    pr, Dr = p[idx], D[idx]
+    blo, bhi, valid = _group_boxes(ok, pr, Dr, s0, s1, lo, hi, valid)
+    boxes = _child_coordinates(arithmetic, blo, bhi, pr, Dr, s0, s1, rest)
+    f, chosen = chunked_eval(tapes, boxes, True, _BUDGET, _CHUNKS)
+    if arithmetic == "affine":
+        f = aa.to_interval(f)
+    amb = valid & _any_level(f, iso)
+    if Gc == 1:
+        amb, first = _behind_first_roots(tapes, amb, first, idx, pr, Dr, s0, s1, rest, iso)
+    if Gc > 1 and h > 1:
+        s1, amb, chosen = _undo_idle_splits(s1, amb, chosen, q, h)
+    unfinished = amb & ((s1 - s0) > fine[idx[..., 0]])
+    children = dict(g=g, s0=s0, s1=s1)
+    return children, amb, chosen, jnp.stack([jnp.sum(valid), jnp.sum(amb),
+                                              jnp.sum(unfinished)]), first
+
+
+def _child_slabs(reg, fine, q, h, single):
+    """The children of regions reg ([R] each: ray group g, slab s0..s1, valid): ray groups
+    g [R, C] (C = q h) and slabs s0, s1 [R, C], valid [R, C]. `single` (single rays):
+    each piece splits into m = min(h, length / last piece) parts, so that every piece ends
+    exactly as long as t-bisection's last one (both are powers of 2; a finished piece
+    stays whole); fine [rays]: each ray's last piece length."""
     sub, k = (a.reshape(-1) for a in jnp.meshgrid(jnp.arange(q), jnp.arange(h),
                                                  indexing="ij"))
     g = reg["g"][:, None] * q + sub[None]                      # [R, C]
@@ -121,18 +148,20 @@ def _level(tapes, reg, seg, lo, hi, rest, iso, first, G, q, h, arithmetic):
     s0 = s0p + ds * k[None]
     s1 = jnp.where(k[None] == h - 1, s1p, s0p + ds * (k[None] + 1))
     valid = jnp.broadcast_to(reg["valid"][:, None], g.shape)
-    if Gc == 1 and q == 1:
-        # single rays: split each piece into m = min(h, length / last piece) parts, so
-        # that every piece ends exactly as long as t-bisection's last one (both are
-        # powers of 2; a finished piece stays whole)
+    if single:
         m = jnp.clip((s1p - s0p) / fine[reg["g"]][:, None], 1, h)
         ds = (s1p - s0p) / m
         s0 = s0p + ds * k[None]
         s1 = jnp.where(k[None] == m - 1, s1p, s0p + ds * (k[None] + 1))
         valid = valid & (k[None] < m)
-    idx = g[..., None] * Gc + jnp.arange(Gc)                  # [R, C, Gc]
-    ok = inside[idx]
-    pr, Dr = p[idx], D[idx]
+    return g, s0, s1, valid
+
+
+def _group_boxes(ok, pr, Dr, s0, s1, lo, hi, valid):
+    """The boxes blo, bhi [R, C, 3] of the children's rays (ok, inside the box: [R, C, Gc];
+    lines pr + s Dr: [R, C, Gc, 3]) over their slabs s0..s1 [R, C]: the hull of the
+    slab ends, padded outward, clipped to [lo, hi]; valid [R, C] kept where a ray is
+    inside and the box is not empty."""
     a = pr + s0[..., None, None] * Dr
     b = pr + s1[..., None, None] * Dr
     big = jnp.float32(jnp.inf)
@@ -141,42 +170,43 @@ def _level(tapes, reg, seg, lo, hi, rest, iso, first, G, q, h, arithmetic):
     pad = _PAD * jnp.maximum(jnp.abs(blo), jnp.abs(bhi))
     blo = jnp.maximum(blo - pad, lo)
     bhi = jnp.minimum(bhi + pad, hi)
-    valid = valid & jnp.any(ok, axis=-1) & jnp.all(blo <= bhi, axis=-1)
+    return blo, bhi, valid & jnp.any(ok, axis=-1) & jnp.all(blo <= bhi, axis=-1)
+
+
+def _child_coordinates(arithmetic, blo, bhi, pr, Dr, s0, s1, rest):
+    """The children's coordinates ([R, C] each) in `arithmetic`: "interval": their boxes
+    blo, bhi [R, C, 3]; "affine": a single ray's piece (Gc = 1, lines pr + s Dr
+    [R, C, Gc, 3]) on one noise symbol, its parameter, else one symbol per axis of the
+    group's box. `rest`: the coordinates after x, y, z, as constants."""
     if arithmetic == "interval":
         boxes = [Interval(blo[..., c], bhi[..., c]) for c in range(3)]
-        boxes += [Interval(v, v) for v in rest]
-    elif Gc == 1:
+        return boxes + [Interval(v, v) for v in rest]
+    if pr.shape[-2] == 1:
         # one ray's piece is exactly affine in its one parameter: one noise symbol
         boxes = ray_boxes(pr[..., 0, :], Dr[..., 0, :], s0, s1, "affine")
-        boxes += [aa.as_affine(jnp.broadcast_to(v, s0.shape), 1) for v in rest]
-    else:
-        # a group's box: one noise symbol per axis
-        mid, rad = 0.5 * (blo + bhi), 0.5 * (bhi - blo)
-        err = _PAD * (jnp.abs(mid) + rad)  # rounding of mid and rad
-        boxes = [Affine(mid[..., c], rad[..., c, None] * jnp.eye(3)[c], err[..., c])
-                 for c in range(3)]
-        boxes += [aa.as_affine(jnp.broadcast_to(v, s0.shape), 3) for v in rest]
-    f, chosen = chunked_eval(tapes, boxes, True, _BUDGET, _CHUNKS)
-    if arithmetic == "affine":
-        f = aa.to_interval(f)
-    amb = valid & _any_level(f, iso)
-    if Gc == 1:
-        # a piece whose ends straddle a level holds a root: the ray's pieces behind it
-        # cannot hold its first hit (t-bisection would never reach them)
-        ray = idx[..., 0]
-        pa, pb = (pr[..., 0, :] + s[..., None] * Dr[..., 0, :] for s in (s0, s1))
-        fa = _point_eval(tapes, pa[..., 0], pa[..., 1], pa[..., 2], rest)
-        fb = _point_eval(tapes, pb[..., 0], pb[..., 1], pb[..., 2], rest)
-        proven = amb & jnp.any((fa[..., None] - iso) * (fb[..., None] - iso) <= 0, axis=-1)
-        n_rays = inside.shape[0]
-        first = first.at[jnp.where(proven, ray, n_rays)].min(s1, mode="drop")
-        amb = amb & (s0 < first[ray])
-    if Gc > 1 and h > 1:
-        s1, amb, chosen = _undo_idle_splits(s1, amb, chosen, q, h)
-    unfinished = amb & ((s1 - s0) > fine[idx[..., 0]])
-    children = dict(g=g, s0=s0, s1=s1)
-    return children, amb, chosen, jnp.stack([jnp.sum(valid), jnp.sum(amb),
-                                              jnp.sum(unfinished)]), first
+        return boxes + [aa.as_affine(jnp.broadcast_to(v, s0.shape), 1) for v in rest]
+    # a group's box: one noise symbol per axis
+    mid, rad = 0.5 * (blo + bhi), 0.5 * (bhi - blo)
+    err = _PAD * (jnp.abs(mid) + rad)  # rounding of mid and rad
+    boxes = [Affine(mid[..., c], rad[..., c, None] * jnp.eye(3)[c], err[..., c])
+             for c in range(3)]
+    return boxes + [aa.as_affine(jnp.broadcast_to(v, s0.shape), 3) for v in rest]
+
+
+def _behind_first_roots(tapes, amb, first, idx, pr, Dr, s0, s1, rest, iso):
+    """Single-ray pieces (rays idx [R, C, 1], lines pr + s Dr [R, C, 1, 3], slabs s0..s1
+    [R, C]): a piece whose ends straddle a level holds a root, so the ray's pieces behind
+    it cannot hold its first hit (t-bisection would never reach them). Returns amb
+    without those pieces and first ([rays]: the end of each ray's nearest proven piece)
+    updated."""
+    ray = idx[..., 0]
+    pa, pb = (pr[..., 0, :] + s[..., None] * Dr[..., 0, :] for s in (s0, s1))
+    fa = _point_eval(tapes, pa[..., 0], pa[..., 1], pa[..., 2], rest)
+    fb = _point_eval(tapes, pb[..., 0], pb[..., 1], pb[..., 2], rest)
+    proven = amb & jnp.any((fa[..., None] - iso) * (fb[..., None] - iso) <= 0, axis=-1)
+    n_rays = first.shape[0]
+    first = first.at[jnp.where(proven, ray, n_rays)].min(s1, mode="drop")
+    return amb & (s0 < first[ray]), first
 
 
 @jax.jit
@@ -389,95 +419,166 @@ def intersect_rays(scene, tape: Tape, rays: Rays, t_min, t_max, stats: dict | No
     `prune=False` runs every region on the full tape (to measure what pruning buys).
     Raises MemoryError when one region's children do not fit the budget."""
     n = rays.shape[0]
+    group, root_q = _root_groups(n, tape.length, budget)
+    per_root = root_q * group
+    n_pad = -(-n // per_root) * per_root
+    padded, t_min, t_max = _padded_rays(rays, t_min, t_max, n_pad)
+    seg = _segments(padded, scene.lo, scene.hi, t_min, t_max, scene.eps)
+    run = _Run(scene, seg, scene.isovalues, _rest_coordinates(scene, tape.n_vars), root_q,
+               group, budget, prune)
+    per_level = None if stats is None else {}
+    found, batches, depth = _traverse(run, [_root_work(tape, n_pad // per_root, per_root)],
+                                      n_pad, per_level)
+    if stats is not None:
+        stats.update(tape_length=int(tape.n), registers=tape.registers, batches=batches,
+                     budget=budget, levels=[_level_stats(per_level[k])
+                                            for k in sorted(per_level)])
+    hits = _finish(padded, seg, *found, run.iso, jnp.int32(depth))
+    return jax.tree_util.tree_map(lambda a: a[:n], hits)
+
+
+class _Run(NamedTuple):
+    """What every batch of one `intersect_rays` call shares."""
+
+    scene: object  # the ImplicitSurface
+    seg: tuple  # `_segments` of the padded rays
+    iso: jax.Array  # the isovalues
+    rest: tuple  # the coordinates after x, y, z: w, then the scalar params
+    root_q: int  # ray groups per root
+    group: int  # rays per root group
+    budget: int
+    prune: bool
+
+
+def _root_groups(n: int, length: int, budget: int):
+    """(rays per group, groups per root) for n rays: `ROOT_GROUP` rays (fewer when there
+    are few rays) x at most `ROOT_GROUPS`, fewer for long tapes (`length`), so that one
+    root's children fit the budget."""
     group = ROOT_GROUP
     while group > 1 and group // 4 >= n:
         group //= 4
-    # roots of fewer groups for long tapes, so that one root's children fit the budget
     root_q = min(ROOT_GROUPS, _tape.bucket(-(-n // group), 1),
-                 max(1, batch_limit(tape.length, ROOT_SLABS, budget)))
-    per_root = root_q * group
-    n_pad = -(-n // per_root) * per_root
+                 max(1, batch_limit(length, ROOT_SLABS, budget)))
+    return group, root_q
+
+
+def _padded_rays(rays: Rays, t_min, t_max, n_pad: int):
+    """Rays [N] padded to [n_pad] (copies of the first ray with an empty range
+    t_min = 1 > t_max = 0), and t_min, t_max [n_pad]."""
+    n = rays.shape[0]
     pad = n_pad - n
     o = jnp.concatenate([rays.origin, jnp.broadcast_to(rays.origin[:1], (pad, 3))])
     d = jnp.concatenate([rays.direction, jnp.broadcast_to(rays.direction[:1], (pad, 3))])
     t_min = jnp.concatenate([jnp.broadcast_to(t_min, (n,)), jnp.ones(pad)])
     t_max = jnp.concatenate([jnp.broadcast_to(t_max, (n,)), jnp.zeros(pad)])
-    seg = _segments(Rays(o, d), scene.lo, scene.hi, t_min, t_max, scene.eps)
-    iso = scene.isovalues
-    # the coordinates after x, y, z: w, then the scalar params (tape coordinates 4, ...)
+    return Rays(o, d), t_min, t_max
+
+
+def _rest_coordinates(scene, n_vars: int) -> tuple:
+    """The tape's coordinates after x, y, z: w, then the scalar params (tape coordinates
+    4, ...), float32 scalars."""
     rest = tuple(jnp.asarray(v, jnp.float32)
                  for v in [scene.w, *jax.tree_util.tree_leaves(scene.params)])
-    if len(rest) != tape.n_vars - 3:
-        raise ValueError(f"the tape reads {tape.n_vars} coordinates, the scene gives "
+    if len(rest) != n_vars - 3:
+        raise ValueError(f"the tape reads {n_vars} coordinates, the scene gives "
                          f"{3 + len(rest)}")
-    n_roots = n_pad // per_root
+    return rest
+
+
+def _root_work(tape: Tape, n_roots: int, per_root: int):
+    """The first batch of work: (tapes, regions, how many are real, level, rays per
+    region) for n_roots roots, each `per_root` rays over their whole segments with the
+    full tape."""
     roots = dict(g=jnp.arange(n_roots, dtype=jnp.int32), s0=jnp.zeros(n_roots),
                  s1=jnp.ones(n_roots), valid=jnp.ones(n_roots, bool))
-    # the work: (tapes, regions, how many are real, level, rays per region), last first
-    work = [(_tape.take_regions(tape, jnp.zeros(n_roots, jnp.int32)), roots, n_roots, 0,
-             per_root)]
+    return (_tape.take_regions(tape, jnp.zeros(n_roots, jnp.int32)), roots, n_roots, 0,
+            per_root)
+
+
+def _traverse(run: _Run, work: list, n_pad: int, per_level: dict | None):
+    """Run every batch of `work` (a stack, last first) and the children batches it leaves,
+    depth first: a batch's children are done before its siblings, so memory stays near
+    one batch per level. `per_level` (None: not kept) receives each level's counts.
+
+    Returns ((best s, value, gradient): each ray's nearest hit, [n_pad] arrays), the
+    batches run and the depth reached."""
     first = jnp.full(n_pad, jnp.inf, jnp.float32)
     best = jnp.full(n_pad, jnp.inf, jnp.float32)
     value = jnp.zeros(n_pad, jnp.float32)
     gradient = jnp.zeros((n_pad, 3), jnp.float32)
-    per_level: dict = {}
     batches = depth = 0
     while work:
         tapes, reg, count, level, G = work.pop()
-        q, h = _split(level, root_q, group)
-        limit = batch_limit(tapes.length, q * h, budget)
-        if limit == 0:
-            raise _too_big(f"one region's {q * h} children", BYTES_PER_CHILD_INSTRUCTION *
-                           tapes.length * q * h, level, tapes.length, budget)
-        if count > limit:  # too many regions at once: split the batch, first part first
-            parts = [_take(tapes, reg, k, count, limit) + (min(limit, count - k),)
-                     for k in range(0, count, limit)]
+        q, h = _split(level, run.root_q, run.group)
+        parts = _batch_parts(tapes, reg, count, level, q * h, run.budget)
+        if parts:  # too many regions at once: split the batch, first part first
             work.extend((t, r, c, level, G) for t, r, c in reversed(parts))
             continue
         batches += 1
         depth = max(depth, level + 1)
         children, amb, chosen, counts, first = _level(
-            tapes, reg, seg, scene.lo, scene.hi, rest, iso, first, G, q, h,
-            scene.arithmetic)
+            tapes, reg, run.seg, run.scene.lo, run.scene.hi, run.rest, run.iso, first, G,
+            q, h, run.scene.arithmetic)
         n_valid, n_amb, n_unfinished = (int(c) for c in counts)
-        if stats is not None:
-            row = per_level.setdefault(level, dict(rays_per_region=G // q, regions=0,
-                                                   kept=0, lengths=[]))
-            row["regions"] += n_valid
-            row["kept"] += n_amb
-        if n_amb == 0:
-            continue
-        # the survivors, in parts that can be gathered and pruned within the budget
-        part = survivor_limit(tapes.length, budget)
-        if part == 0:
-            raise _too_big("one region's tape", BYTES_PER_SURVIVOR_INSTRUCTION *
-                           tapes.length, level, tapes.length, budget)
-        size = min(part, _tape.bucket(n_amb, 8, fine=True))
-        where = ambiguous_positions(amb, _tape.bucket(n_amb, 8, fine=True))
-        pieces = []
-        pruning = prune and tapes.length > PRUNE_ABOVE
-        for start in range(0, n_amb, size):
-            sub, choices, sub_reg = gather_children(tapes, children, chosen, where,
-                                                     start, n_amb, size, not pruning)
-            if pruning:
-                sub = _prune_sorted(sub, choices)
-                sub = _tape.resize(sub, _tape.bucket(int(jnp.max(sub.n))))
-            sub, sub_reg = _longest_first(sub, sub_reg)
-            pieces.append((sub, sub_reg, min(size, n_amb - start)))
-            if stats is not None:
-                row["lengths"].append(np.asarray(sub.n)[:pieces[-1][2]])
+        pieces = _survivors(run, tapes, children, amb, chosen, n_amb, level) if n_amb else []
+        if per_level is not None:
+            _count_level(per_level, level, G // q, n_valid, n_amb, pieces)
         for sub, sub_reg, c in reversed(pieces):
             if G // q == 1 and n_unfinished == 0:
-                found = _final(sub, sub_reg, seg, rest, iso, scene.verify, n_pad)
+                found = _final(sub, sub_reg, run.seg, run.rest, run.iso, run.scene.verify,
+                               n_pad)
                 best, value, gradient = _merge(best, value, gradient, found, n_pad)
             else:
                 work.append((sub, sub_reg, c, level + 1, G // q))
-    if stats is not None:
-        stats.update(tape_length=int(tape.n), registers=tape.registers, batches=batches,
-                     budget=budget, levels=[_level_stats(per_level[k])
-                                            for k in sorted(per_level)])
-    hits = _finish(Rays(o, d), seg, best, value, gradient, iso, jnp.int32(depth))
-    return jax.tree_util.tree_map(lambda a: a[:n], hits)
+    return (best, value, gradient), batches, depth
+
+
+def _batch_parts(tapes, reg, count: int, level: int, children: int, budget: int):
+    """A batch of `count` regions with `children` children each in parts that fit
+    `budget` ((tapes, regions, how many are real) each), or None when it fits whole.
+    Raises MemoryError when one region's children do not fit."""
+    limit = batch_limit(tapes.length, children, budget)
+    if limit == 0:
+        raise _too_big(f"one region's {children} children", BYTES_PER_CHILD_INSTRUCTION *
+                       tapes.length * children, level, tapes.length, budget)
+    if count <= limit:
+        return None
+    return [_take(tapes, reg, k, count, limit) + (min(limit, count - k),)
+            for k in range(0, count, limit)]
+
+
+def _survivors(run: _Run, tapes, children, amb, chosen, n_amb: int, level: int) -> list:
+    """The n_amb children that hold a level (amb [R, C]), in parts that can be gathered
+    and pruned within the budget: (tapes, regions, how many are real) each, the tapes
+    pruned by the children's own choices (long tapes only, and when `run.prune`) and
+    sorted longest first."""
+    part = survivor_limit(tapes.length, run.budget)
+    if part == 0:
+        raise _too_big("one region's tape", BYTES_PER_SURVIVOR_INSTRUCTION *
+                       tapes.length, level, tapes.length, run.budget)
+    size = min(part, _tape.bucket(n_amb, 8, fine=True))
+    where = ambiguous_positions(amb, _tape.bucket(n_amb, 8, fine=True))
+    pieces = []
+    pruning = run.prune and tapes.length > PRUNE_ABOVE
+    for start in range(0, n_amb, size):
+        sub, choices, sub_reg = gather_children(tapes, children, chosen, where,
+                                                 start, n_amb, size, not pruning)
+        if pruning:
+            sub = _prune_sorted(sub, choices)
+            sub = _tape.resize(sub, _tape.bucket(int(jnp.max(sub.n))))
+        sub, sub_reg = _longest_first(sub, sub_reg)
+        pieces.append((sub, sub_reg, min(size, n_amb - start)))
+    return pieces
+
+
+def _count_level(per_level: dict, level: int, rays_per_region: int, n_valid: int,
+                 n_amb: int, pieces: list):
+    """Add a batch's region counts and its survivors' tape lengths to its level's row."""
+    row = per_level.setdefault(level, dict(rays_per_region=rays_per_region, regions=0,
+                                           kept=0, lengths=[]))
+    row["regions"] += n_valid
+    row["kept"] += n_amb
+    row["lengths"].extend(np.asarray(sub.n)[:c] for sub, _, c in pieces)
 
 
 def _level_stats(row):
