@@ -27,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -509,57 +510,19 @@ def cast(f, lo, hi, camera, w=0.0, schedule: Schedule | None = None, prune: bool
     H, W, ortho = camera.height, camera.width, bool(camera.orthographic)
     frame = _camera_frame(camera)
     if schedule is None:
-        fwd = np.abs(np.asarray(camera.forward))
-        axis = int(np.argmax(fwd))
-        extruded = ortho and fwd[axis] > 1 - 1e-6 and not tape.uses(axis)
-        schedule = default_schedule(extruded, max(H, W))
-    T0 = schedule.root_tile
+        schedule = _schedule_for(camera, tape)
+    levels = _level_tiles(schedule, H, W)
+    ny, nx, _, T0 = levels[0]
     Tf = schedule.final_tile
-    if Tf < 1 or T0 % max(Tf, 1):
-        raise ValueError(f"schedule splits {schedule.splits} do not divide the root tile "
-                         f"{T0}")
-    ny, nx = -(-H // T0), -(-W // T0)
-    Hp, Wp = ny * T0, nx * T0
-    pix = _pixels(frame, lo, hi, H, W, Hp, Wp, ortho)
+    pix = _pixels(frame, lo, hi, H, W, ny * T0, nx * T0, ortho)
+    view = _View(frame, lo, hi, w, H, W, ortho, pix, budget, prune)
     stats = dict(schedule=dataclasses.asdict(schedule), tape_length=int(tape.n),
                  levels=[])
-    # the root: one region (the whole image, all depths) with the full tape
-    s_lo = jnp.min(pix[0])
-    s_hi = jnp.max(pix[1])
-    reg = dict(ty=jnp.zeros(1, jnp.int32), tx=jnp.zeros(1, jnp.int32),
-               s0=s_lo[None], s1=s_hi[None], valid=jnp.isfinite(s_hi - s_lo)[None])
-    tapes = _tape.take_regions(tape, jnp.zeros(1, jnp.int32))
-    levels = [(ny, nx, schedule.root_slabs, T0)]
-    T = T0
-    for g, h in schedule.splits:
-        T //= g
-        levels.append((g, g, h, T))
+    tapes, reg = _root_region(tape, pix)
     front = None
     for gy, gx, h, Tc in levels:
-        t_level = time.perf_counter()
-        smap = _tile_ranges(pix[0], pix[1], Tc)
-        if front is None:
-            front = (jnp.full(smap[0].shape, jnp.inf), jnp.full(smap[0].shape, jnp.inf))
-        else:
-            front = tuple(jnp.repeat(jnp.repeat(x, gy, axis=0), gx, axis=1) for x in front)
-        children, amb, chosen, front, counts = _level(
-            tapes, reg, smap, front, frame, lo, hi, w, gy, gx, h, Tc, H, W, ortho, budget)
-        n_valid, n_full, n_amb = (int(c) for c in np.asarray(counts))
-        t_eval = time.perf_counter() - t_level
-        size = _tape.bucket(max(n_amb, 1), 8, fine=True)
-        tapes, choices, reg = gather_children(tapes, children, chosen,
-                                              ambiguous_positions(amb, size), 0, n_amb, size,
-                                              not prune)
-        if prune:
-            tapes = _prune(tapes, choices)
-            tapes = _tape.resize(tapes, _tape.bucket(int(jnp.max(tapes.n))))
-        n_kept = np.asarray(tapes.n)[:n_amb]
-        _block(tapes.op)
-        stats["levels"].append(dict(
-            tile=Tc, regions=n_valid, full=n_full, ambiguous=n_amb, region_bucket=size,
-            tape_bucket=tapes.length, tape_mean=float(n_kept.mean()) if n_amb else 0.0,
-            tape_max=int(n_kept.max()) if n_amb else 0, tape_hist=histogram(n_kept),
-            seconds=time.perf_counter() - t_level, eval_seconds=t_eval))
+        tapes, reg, front, row = _cast_level(view, tapes, reg, front, gy, gx, h, Tc)
+        stats["levels"].append(row)
     t_final = time.perf_counter()
     img, n_rays = _final(tapes, reg, pix, frame, w, Tf, schedule.samples, schedule.rounds,
                          H, W, ortho, budget)
@@ -569,3 +532,92 @@ def cast(f, lo, hi, camera, w=0.0, schedule: Schedule | None = None, prune: bool
     stats["final"] = dict(rays=int(n_rays), seconds=time.perf_counter() - t_final)
     stats["seconds"] = time.perf_counter() - clock
     return ProgramHits(t=t, hit=jnp.isfinite(t), stats=stats)
+
+
+class _View(NamedTuple):
+    """What every level of one `cast` shares: the camera frame [4, 3], the box lo, hi
+    [3], w, the image's size and projection, the padded pixels' ranges (`_pixels`) and
+    the options."""
+
+    frame: jax.Array
+    lo: jax.Array
+    hi: jax.Array
+    w: jax.Array
+    H: int
+    W: int
+    ortho: bool
+    pix: tuple
+    budget: int
+    prune: bool
+
+
+def _schedule_for(camera, tape: Tape) -> Schedule:
+    """`default_schedule` for the camera and program: 2D when an axis-aligned
+    orthographic camera looks along a coordinate the program does not read."""
+    fwd = np.abs(np.asarray(camera.forward))
+    axis = int(np.argmax(fwd))
+    extruded = bool(camera.orthographic) and fwd[axis] > 1 - 1e-6 and not tape.uses(axis)
+    return default_schedule(extruded, max(camera.height, camera.width))
+
+
+def _level_tiles(schedule: Schedule, H: int, W: int) -> list:
+    """Per level (gy, gx, h, tile): each region splits into gy x gx tiles of `tile`
+    pixels a side and h slabs (the root: the image's ny x nx root tiles)."""
+    T0 = schedule.root_tile
+    Tf = schedule.final_tile
+    if Tf < 1 or T0 % max(Tf, 1):
+        raise ValueError(f"schedule splits {schedule.splits} do not divide the root tile "
+                         f"{T0}")
+    levels = [(-(-H // T0), -(-W // T0), schedule.root_slabs, T0)]
+    T = T0
+    for g, h in schedule.splits:
+        T //= g
+        levels.append((g, g, h, T))
+    return levels
+
+
+def _root_region(tape: Tape, pix):
+    """The root: one region (the whole image, all depths) with the full tape; (tapes,
+    region) with [1] arrays."""
+    s_lo = jnp.min(pix[0])
+    s_hi = jnp.max(pix[1])
+    reg = dict(ty=jnp.zeros(1, jnp.int32), tx=jnp.zeros(1, jnp.int32),
+               s0=s_lo[None], s1=s_hi[None], valid=jnp.isfinite(s_hi - s_lo)[None])
+    return _tape.take_regions(tape, jnp.zeros(1, jnp.int32)), reg
+
+
+def _cast_level(view: _View, tapes, reg, front, gy, gx, h, Tc):
+    """One level of `cast`: split the regions (gy x gx tiles of Tc pixels, h slabs),
+    classify, keep the ambiguous children with their tapes (pruned by their own choices
+    when `view.prune`). Returns (tapes, regions, front, the level's stats row)."""
+    t_level = time.perf_counter()
+    smap = _tile_ranges(view.pix[0], view.pix[1], Tc)
+    front = _front_at(front, smap, gy, gx)
+    children, amb, chosen, front, counts = _level(
+        tapes, reg, smap, front, view.frame, view.lo, view.hi, view.w, gy, gx, h, Tc,
+        view.H, view.W, view.ortho, view.budget)
+    n_valid, n_full, n_amb = (int(c) for c in np.asarray(counts))
+    t_eval = time.perf_counter() - t_level
+    size = _tape.bucket(max(n_amb, 1), 8, fine=True)
+    tapes, choices, reg = gather_children(tapes, children, chosen,
+                                          ambiguous_positions(amb, size), 0, n_amb, size,
+                                          not view.prune)
+    if view.prune:
+        tapes = _prune(tapes, choices)
+        tapes = _tape.resize(tapes, _tape.bucket(int(jnp.max(tapes.n))))
+    n_kept = np.asarray(tapes.n)[:n_amb]
+    _block(tapes.op)
+    row = dict(
+        tile=Tc, regions=n_valid, full=n_full, ambiguous=n_amb, region_bucket=size,
+        tape_bucket=tapes.length, tape_mean=float(n_kept.mean()) if n_amb else 0.0,
+        tape_max=int(n_kept.max()) if n_amb else 0, tape_hist=histogram(n_kept),
+        seconds=time.perf_counter() - t_level, eval_seconds=t_eval)
+    return tapes, reg, front, row
+
+
+def _front_at(front, smap, gy, gx):
+    """The per-tile front (fs0, fs1) at a level's tiles (smap: their ranges): none yet
+    (inf) at the root, else each parent tile's repeated over its gy x gx children."""
+    if front is None:
+        return (jnp.full(smap[0].shape, jnp.inf), jnp.full(smap[0].shape, jnp.inf))
+    return tuple(jnp.repeat(jnp.repeat(x, gy, axis=0), gx, axis=1) for x in front)
