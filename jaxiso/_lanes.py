@@ -6,12 +6,15 @@ behind it. Here a lane whose ray finishes writes its result and takes the next r
 the queue, so every iteration does `width` useful steps while the queue lasts. When the
 queue runs dry and few lanes are still busy, their rays move, with their state, to a
 narrower loop (width / 8, down to `min_width`), so the slow tail does not pay for idle
-lanes. Lanes step `refill_every` times between refills: refilling costs a gather and a
-scatter per state array, and a lane that finishes early idles until the next refill
-(measured for the implicits in benchmarks/NOTES.md: 4 was best). An optional `settle`
-runs after each such stretch, on the lanes' states together: work that only some lanes
-need now and then (checking a bisection's hit) is gathered there instead of being done
-by every lane at every step.
+lanes. Each phase compiles the step again, so by default there are two (width, width /
+8): on the 2-core CPU a third and fourth phase (down to 32 lanes) made the first call of
+implicits, volumes and tet meshes 1.6-2x longer and the frames no faster
+(benchmarks/NOTES.md, session 20). Lanes step `refill_every` times between refills:
+refilling costs a gather and a scatter per state array, and a lane that finishes early
+idles until the next refill (measured for the implicits in benchmarks/NOTES.md: 4 was
+best). An optional `settle` runs after each such stretch, on the lanes' states
+together: work that only some lanes need now and then (checking a bisection's hit) is
+gathered there instead of being done by every lane at every step.
 """
 
 from __future__ import annotations
@@ -23,9 +26,11 @@ from jax import lax
 __all__ = ["run_rays", "run_lanes", "phase_widths"]
 
 
-def phase_widths(lanes: int, n: int, min_width: int = 32) -> list[int]:
+def phase_widths(lanes: int, n: int, min_width: int | None = None) -> list[int]:
     """Lane counts of the successive phases for a queue of n rays: lanes, lanes / 8, ...
-    down to min_width (never more lanes than rays)."""
+    down to min_width (None: lanes / 8, two phases; never more lanes than rays)."""
+    if min_width is None:
+        min_width = max(1, int(lanes) // 8)
     widths = [max(1, min(int(lanes), n))]
     while widths[-1] > min_width:
         widths.append(max(min_width, widths[-1] // 8))
@@ -39,7 +44,7 @@ def _select(mask, new, old):
 
 
 def run_rays(step, busy, state, results, *, max_steps: int, steps: str, lanes=None,
-             settle=None, min_width: int = 32):
+             settle=None, min_width: int | None = None):
     """Iterate per-ray `state` (leaves [P, ...]) until no ray is busy.
 
     step: state -> state (rays not busy must come back unchanged); busy: state -> [P]
@@ -75,7 +80,7 @@ def run_rays(step, busy, state, results, *, max_steps: int, steps: str, lanes=No
 
 
 def run_lanes(step, done, queue, n_queue, results, write, *, lanes: int,
-              refill_every: int = 4, min_width: int = 32, settle=None):
+              refill_every: int = 4, min_width: int | None = None, settle=None):
     """Run the rays of `queue` to completion on persistent lanes.
 
     Args:
@@ -90,7 +95,7 @@ def run_lanes(step, done, queue, n_queue, results, write, *, lanes: int,
       write: (results, state, target) -> results, where target [L] int32 is the output row
         of each finished lane and N elsewhere (scatter with mode="drop").
       lanes: static width of the first phase; min_width: of the last (each phase compiles
-        `step` and `settle` again).
+        `step` and `settle` again; None: lanes / 8, two phases).
       settle: None or ``(state, live) -> state``, run on all lanes ([L, ...] leaves; live
         [L] bool: the lane holds a queued ray) after every `refill_every` steps, before
         finished lanes are written.

@@ -388,7 +388,7 @@ PILOT_MIN = 16
 
 
 def t_bisect_lanes(test, p, D, d_max, active, lanes: int | None, max_steps: int,
-                   verify=None, d_start=0, min_width: int = 32, ahead=None,
+                   verify=None, d_start=0, min_width: int | None = None, ahead=None,
                    aux=None, verify_levels: int = 0) -> Result:
     """t-bisection of a batch of rays [N] on `lanes` persistent lanes with refill
     (`jaxiso._lanes.run_rays`; rays that miss the domain never enter the queue), or, with
@@ -410,7 +410,8 @@ def t_bisect_lanes(test, p, D, d_max, active, lanes: int | None, max_steps: int,
         accepted pieces only.
       d_start: int32 [] or [N], the depth the walks start at (`start_depth`); pieces
         above it are not tested.
-      min_width: static width of the narrowest lane phase (`jaxiso._lanes.run_lanes`).
+      min_width: static width of the narrowest lane phase (`jaxiso._lanes.run_lanes`;
+        None: lanes / 8).
       ahead, aux: None, or ``ahead(aux, s) -> s_free`` and its per-ray data (a pytree of
         [N, ...] leaves): the ray's stretch [s, s_free) holds no root (`_t_step`).
       verify_levels: as in `t_bisect`.
@@ -532,7 +533,7 @@ def run_bisection(test, p, D, inside, how: Bisection) -> Result:
     if how.method == "t-bisection" and how.lanes is not None:
         d_start = start_depth(test, p, D, d_max, inside) if how.heavy else 0
         return t_bisect_lanes(test, p, D, d_max, inside, how.lanes, max_steps, how.verify,
-                              d_start, min_width=64 if how.heavy else 32, ahead=ahead,
+                              d_start, min_width=_tail_width(how), ahead=ahead,
                               aux=aux, verify_levels=how.verify_levels)
     if how.method == "t-bisection":
         return t_bisect_packet(test, p, D, d_max, inside, max_steps, how.verify,
@@ -540,6 +541,13 @@ def run_bisection(test, p, D, inside, how: Bisection) -> Result:
     if how.method == "k-bisection":
         return k_bisect_packet(test, p, D, d_max, inside, max_steps, how.verify)
     raise ValueError(f"unknown bisection method {how.method!r}")
+
+
+def _tail_width(how: Bisection) -> int | None:
+    """The narrowest lane phase: a third phase of 64 lanes for costly functions (a
+    network's step on 512 idle-heavy lanes costs more than the phase's compile), else
+    the default two phases (`jaxiso._lanes.phase_widths`)."""
+    return 64 if how.heavy else None
 
 
 def t_bisect_packet(test, p, D, d_max, inside, max_steps, verify, empty=None,
