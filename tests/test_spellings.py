@@ -111,7 +111,9 @@ def test_equinox_module_as_params():
 def _all_cases():
     for activation in sp.ACTIVATIONS:
         for spelling in sp.spellings_of(activation):
-            marks = [PARAMS_MODULE] if spelling == "equinox.params" else []
+            # layer_norm's module (spellings.NormedMLP) holds no function: it runs
+            crash = spelling == "equinox.params" and activation != "layer_norm"
+            marks = [PARAMS_MODULE] if crash else []
             yield pytest.param(activation, spelling, marks=marks,
                                id=f"{activation}-{spelling}")
 
