@@ -278,3 +278,19 @@ def test_a_budget_too_small_raises_naming_both_figures():
         S.intersect_tape(rays, t_min, t_max, budget=20_000)
     with pytest.raises(ValueError, match="memory_budget"):
         ji.Plan(tape=True, memory_budget=1000)
+
+
+def test_stats_of_a_level_that_keeps_no_region():
+    """A field that is positive over the whole box keeps no region at its first level;
+    the stats still report that level (it raised 'need at least one array to
+    concatenate')."""
+    S = ji.ImplicitSurface(lambda x, y, z: x * x + y * y + z * z + 1.0, (-1.0,) * 3,
+                           (1.0,) * 3, arithmetic="interval")
+    rays = ji.Camera.look_at((3.0, 2.5, 2.0), (0, 0, 0), width=8, height=8).rays()
+    rays = rays.reshape((-1,))
+    stats = {}
+    hits = S.intersect_tape(rays, jnp.zeros(rays.shape), jnp.full(rays.shape, jnp.inf),
+                            stats=stats)
+    assert not np.asarray(hits.hit).any()
+    assert stats["levels"][0]["kept"] == 0
+    assert stats["levels"][0]["regions"] > 0 and stats["levels"][0]["tape_max"] == 0

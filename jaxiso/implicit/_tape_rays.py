@@ -582,6 +582,8 @@ def _count_level(per_level: dict, level: int, rays_per_region: int, n_valid: int
 
 
 def _level_stats(row):
-    kept = np.concatenate(row.pop("lengths"))
+    lengths = row.pop("lengths")
+    # a level where no batch kept a region has no lengths to join
+    kept = np.concatenate(lengths) if lengths else np.zeros(0, np.int32)
     return dict(row, tape_mean=float(kept.mean()) if kept.size else 0.0,
                 tape_max=int(kept.max()) if kept.size else 0, tape_hist=histogram(kept))
