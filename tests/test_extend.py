@@ -324,3 +324,34 @@ def test_atan2_encloses_sampled_angles_and_handles_the_branch_cut():
     q = F(ji.interval(1.0, 2.0), ji.interval(1.0, 2.0))
     np.testing.assert_allclose([float(q.lo), float(q.hi)],
                                [np.arctan2(1, 2), np.arctan2(2, 1)], rtol=1e-6)
+
+
+def test_repeated_subexpressions_are_extended_once():
+    """A polynomial that writes x**3 in every term extends it once (the affine program
+    of ten repeats is as long as that of one plus nine adds), and the repeats stay one
+    value: x**3 - x**3 encloses exactly 0 in affine arithmetic."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxiso.arith import Interval, extend
+    from jaxiso.arith._affine_type import from_interval
+
+    def one(x, y, z):
+        return x**3 * y
+
+    def ten(x, y, z):
+        r = x**3 * y
+        for _ in range(9):
+            r = r + x**3 * y
+        return r
+
+    box = [from_interval(Interval(jnp.full(4, 0.1), jnp.full(4, 0.3)), i, 3)
+           for i in range(3)]
+    n_one = len(jax.make_jaxpr(extend(one, "affine"))(*box).jaxpr.eqns)
+    n_add = len(jax.make_jaxpr(extend(lambda x, y, z: x + y, "affine"))(*box).jaxpr.eqns) - \
+        len(jax.make_jaxpr(extend(lambda x, y, z: x, "affine"))(*box).jaxpr.eqns)
+    n_ten = len(jax.make_jaxpr(extend(ten, "affine"))(*box).jaxpr.eqns)
+    assert n_ten <= n_one + 9 * n_add
+    d = extend(lambda x, y, z: x**3 - x**3, "affine")(*box)
+    r = jnp.sum(jnp.abs(d.dev), axis=-1) + d.err
+    assert float(jnp.max(jnp.abs(d.center))) == 0.0 and float(jnp.max(r)) == 0.0

@@ -180,10 +180,11 @@ def _line(x, y, z):
 
 
 def _flat(x, y, z):
-    """1e-3 everywhere, but the interval extension of (y y - y y) 100 + 1e-3 (two products,
-    so no shared-variable rule applies) holds 0 on pieces away from y = 0: the seed's rule
-    takes the entry piece for a hit."""
-    return (y * y - y * y) * 100.0 + 1e-3
+    """1e-3 everywhere, but the interval extension of (y y - y (1 y)) 100 + 1e-3 (two
+    different products, so neither a shared-variable rule nor the extension's sharing of
+    repeated equations applies) holds 0 on pieces away from y = 0: the seed's rule takes
+    the entry piece for a hit."""
+    return (y * y - y * (1.0 * y)) * 100.0 + 1e-3
 
 
 def _rays_past_the_line():

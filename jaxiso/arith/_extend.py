@@ -296,6 +296,7 @@ def _call_body(eqn):
 
 def _eval_jaxpr(jaxpr, consts, args, ctx: _Context):
     env = {}
+    seen = {}  # an equation's key (`_same_equation`) -> its outputs
 
     def read(v):
         return v.val if isinstance(v, jcore.Literal) else env[v]
@@ -305,10 +306,37 @@ def _eval_jaxpr(jaxpr, consts, args, ctx: _Context):
     for v, a in zip(jaxpr.invars, args):
         env[v] = a
     for eqn in jaxpr.eqns:
-        outs = _apply(eqn, [read(v) for v in eqn.invars], ctx)
+        invals = [read(v) for v in eqn.invars]
+        key = _same_equation(eqn, invals)
+        outs = seen.get(key) if key is not None else None
+        if outs is None:
+            outs = _apply(eqn, invals, ctx)
+            if key is not None:
+                seen[key] = outs
         for v, o in zip(eqn.outvars, outs):
             env[v] = o
     return [read(v) for v in jaxpr.outvars]
+
+
+def _same_equation(eqn, invals):
+    """A key that two equations share when they apply one primitive with equal params
+    to the same values, or None (effects, unhashable params). Programs as people write
+    them repeat subexpressions (a polynomial's ``x**3`` in every term, an SDF's
+    ``x * x``); each is extended once, which keeps the extended program -- and its
+    compile, ~140 operations per affine multiply -- to the distinct ones, and keeps
+    the repeats correlated (one fresh symbol, not two). The values are held by the
+    evaluation's environment, so their ids are unique while the key is used."""
+    if eqn.effects:
+        return None
+    ins = tuple(("value", id(x)) if not isinstance(v, jcore.Literal) else
+                ("literal", np.asarray(x).dtype.str, np.asarray(x).tobytes())
+                for v, x in zip(eqn.invars, invals))
+    try:
+        key = (eqn.primitive, ins, tuple(sorted(eqn.params.items())))
+        hash(key)
+    except TypeError:
+        return None
+    return key
 
 
 def _apply(eqn, invals, ctx: _Context) -> list:
