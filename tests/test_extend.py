@@ -333,8 +333,7 @@ def test_repeated_subexpressions_are_extended_once():
     import jax
     import jax.numpy as jnp
 
-    from jaxiso.arith import Interval, extend
-    from jaxiso.arith._affine_type import from_interval
+    from jaxiso.arith import Interval, aa, extend
 
     def one(x, y, z):
         return x**3 * y
@@ -345,7 +344,7 @@ def test_repeated_subexpressions_are_extended_once():
             r = r + x**3 * y
         return r
 
-    box = [from_interval(Interval(jnp.full(4, 0.1), jnp.full(4, 0.3)), i, 3)
+    box = [aa.from_interval(Interval(jnp.full(4, 0.1), jnp.full(4, 0.3)), i, 3)
            for i in range(3)]
     n_one = len(jax.make_jaxpr(extend(one, "affine"))(*box).jaxpr.eqns)
     n_add = len(jax.make_jaxpr(extend(lambda x, y, z: x + y, "affine"))(*box).jaxpr.eqns) - \

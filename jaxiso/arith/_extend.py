@@ -323,7 +323,7 @@ def _same_equation(eqn, invals):
     to the same values, or None (effects, unhashable params). Programs as people write
     them repeat subexpressions (a polynomial's ``x**3`` in every term, an SDF's
     ``x * x``); each is extended once, which keeps the extended program -- and its
-    compile, ~140 operations per affine multiply -- to the distinct ones, and keeps
+    compile, ~210 equations per affine product -- to the distinct ones, and keeps
     the repeats correlated (one fresh symbol, not two). The values are held by the
     evaluation's environment, so their ids are unique while the key is used."""
     if eqn.effects:
