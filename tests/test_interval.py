@@ -284,3 +284,21 @@ def test_outward_soundness_against_float64_binary(name, arithmetic, bx, by):
     rng = np.random.default_rng(3)
     vals = _np64(NP_BINARY[name], sample_points(xlo, xhi, rng), sample_points(ylo, yhi, rng))
     assert_encloses(enc.lo, enc.hi, vals, f"outward {arithmetic} {name}")
+
+
+def test_tanh_encloses_near_saturation_where_xla_tanh_is_not_monotone():
+    # XLA's float32 tanh steps down by up to 6 ulps near +-1 (found by
+    # test_unary_soundness_fast: [-0.99999976, -0.99999982] on a box near -7.89); every
+    # box between neighbouring floats must stay ordered and hold float64 tanh and XLA's
+    # own value at both ends
+    x = np.linspace(-10.0, 10.0, 400_001).astype(np.float32)
+    lo, hi = x[:-1], x[1:]
+    enc = jax.jit(lambda a, b: ia.tanh(Interval(a, b)))(lo, hi)
+    enc_lo, enc_hi = np.asarray(enc.lo, np.float64), np.asarray(enc.hi, np.float64)
+    assert (enc_lo <= enc_hi).all()
+    for ends in (lo, hi):
+        true = np.tanh(ends.astype(np.float64))
+        ours = np.asarray(jax.jit(jnp.tanh)(ends), np.float64)
+        for v in (true, ours):
+            assert (enc_lo <= v).all() and (v <= enc_hi).all()
+    assert enc_lo.min() >= -1.0 and enc_hi.max() <= 1.0
