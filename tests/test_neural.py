@@ -344,6 +344,42 @@ def test_auto_arithmetic_picks_and_reports():
     assert scene.arithmetic == "affine", scene.arithmetic_report
 
 
+def _long_polynomial(x, y, z):
+    """A random-looking polynomial of 40 terms up to degree 6: its affine extension is
+    far longer than its interval one (~14k against ~2.5k equations)."""
+    s = x * x + y * y + z * z - 0.5
+    for i in range(40):
+        a, b, c = i % 4, (i // 4) % 3, (i // 12) % 3
+        s = s + (0.01 * ((i * 7) % 11 - 5)) * x**a * y**b * z**c
+    return s
+
+
+def test_auto_does_not_compile_a_long_affine_extension(monkeypatch):
+    from jaxiso.implicit import _auto
+    compiled = []
+    real = _auto._pick
+    monkeypatch.setattr(_auto, "_pick", lambda *a: compiled.append(1) or real(*a))
+    scene = ji.ImplicitSurface(_long_polynomial, (-1,) * 3, (1,) * 3).prepared()
+    assert scene.arithmetic == "interval"
+    assert "equations" in scene.arithmetic_report and not compiled, scene.arithmetic_report
+    # the same count under a trace (nothing else can be measured there)
+    seen = []
+
+    @jax.jit
+    def traced(r):
+        s = ji.ImplicitSurface(lambda x, y, z, p: _long_polynomial(x, y, z) - p, (-1,) * 3,
+                               (1,) * 3, params=r).prepared()
+        seen.append((s.arithmetic, s.arithmetic_report))
+        return r
+
+    traced(jnp.float32(0.0))
+    assert seen[0][0] == "interval" and "equations" in seen[0][1]
+    # below the limit the widths are measured as before
+    scene = ji.ImplicitSurface(lambda x, y, z: x**3 + y**3 + z**3 - 0.5, (-1,) * 3,
+                               (1,) * 3)
+    assert "equations" not in scene.prepared().arithmetic_report
+
+
 def test_auto_under_a_trace_picks_affine():
     @jax.jit
     def build_and_hit(r):

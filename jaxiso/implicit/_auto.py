@@ -10,6 +10,12 @@ chosen when its median width ratio is more than 2x smaller (networks: interval
 enclosures do not shrink with the piece; polynomials: they are within 2x).
 Long programs (the tape path) are measured the same way on their tape, where affine costs
 about 8x an interval evaluation (`TAPE_COST_RATIO`).
+
+Compile time is part of the choice: the affine rules are 5-10x the interval rules in
+code (a product is ~200 jaxpr equations against ~30), and XLA's compile time grows
+faster than linearly with code size. An affine extension of more than
+`AFFINE_MAX_EQUATIONS` equations (counted on the traced measurement, before any compile)
+is not compiled: such an f gets interval, and the report says why.
 """
 
 from __future__ import annotations
@@ -35,6 +41,12 @@ COST_RATIO = 2.0  # affine / interval evaluation cost per piece
 # 2,175-instruction MLP. The evaluator computes every opcode's rule at every step and
 # selects, and the affine rules (guards, Chebyshev, min/max through relu) are long.
 TAPE_COST_RATIO = 8.0
+# The largest affine measurement program (jaxpr equations, nested ones included) that is
+# compiled. Measured on the 2-core CPU (benchmarks/NOTES.md, session 23): the catalogue's
+# surfaces are 0.6k-7.3k equations and compile in 0.1-4.1 s; random polynomials of 20-30
+# terms are 18.8k-28.3k and compile in 12.8-34.5 s, and their renders (twice the code
+# and more) did not finish in 15 minutes; interval renders them.
+AFFINE_MAX_EQUATIONS = 8000
 
 
 # choices by (f, rounding, box): the choice is a property of the function on its box,
@@ -49,12 +61,15 @@ def choose_arithmetic(f, g, lo, hi, w, params, rounding: str, tape=None
     evaluator; measured once per f, rounding and box (`_CHOICES`, emptied by
     `jaxiso.clear_caches`). Traced inputs (a scene prepared under jit) are neither
     measured nor looked up: they get "affine", which converges on every f jaxiso
-    extends ("interval" for a long program, the tape path's first arithmetic), and the
-    report says so (prepare the scene outside the trace, `ImplicitSurface.prepared`)."""
+    extends ("interval" for a long program, the tape path's first arithmetic, or where
+    the affine extension is over `AFFINE_MAX_EQUATIONS`), and the report says so
+    (prepare the scene outside the trace, `ImplicitSurface.prepared`)."""
     leaves = [lo, hi, w] + jax.tree_util.tree_leaves(params)
     if any(concrete(x) is None for x in leaves):
-        pick = "affine" if tape is None else "interval"
-        return pick, f"auto: {pick} (prepared under a trace: nothing measured)"
+        if tape is not None:
+            return "interval", "auto: interval (prepared under a trace: nothing measured)"
+        too_long = _too_long(_width_programs(g, w, params, rounding)["affine"])
+        return too_long or ("affine", "auto: affine (prepared under a trace: nothing measured)")
     progress = Progress()
 
     def measure():
@@ -99,20 +114,59 @@ def _pick(vals, widths: dict, cost: float, what: str) -> tuple[str, str]:
                   f"affine {af:.3g})")
 
 
-def _measure(g, lo, hi, w, params, rounding: str) -> tuple[str, str]:
-    p, D, pts = _pieces(lo, hi)
+def _width_programs(g, w, params, rounding: str) -> dict:
+    """{arithmetic: the traced (not compiled) program of the enclosures' widths on the
+    sample pieces, a `jax.stages.Traced` of (p, D, w, params)}; traced on the arguments'
+    shapes, so it works for traced w and params too."""
     s0, s1 = jnp.zeros(N_PIECES), jnp.ones(N_PIECES)
-    vals = on_points(g)(pts[..., 0], pts[..., 1], pts[..., 2], w, params)
-    widths = {}
+    piece = jax.ShapeDtypeStruct((N_PIECES, 3), jnp.float32)
+    shapes = (piece, piece) + jax.tree_util.tree_map(
+        lambda v: jax.ShapeDtypeStruct(jnp.shape(v), jnp.result_type(v)), (w, params))
+    programs = {}
     for arithmetic in ("interval", "affine"):
         F = extended(g, arithmetic, rounding)
 
-        @jax.jit  # one compile: eager, the interpreter dispatches thousands of small ops
+        # one compile: eager, the interpreter dispatches thousands of small ops
         def width(p, D, w, params, F=F, arithmetic=arithmetic):
             r = enclosure(F, ray_boxes(p, D, s0, s1, arithmetic), w, params, arithmetic)
             return r.hi - r.lo
 
-        widths[arithmetic] = width(p, D, w, params)
+        programs[arithmetic] = jax.jit(width).trace(*shapes)
+    return programs
+
+
+def equation_count(jaxpr) -> int:
+    """Equations of a jaxpr (or closed jaxpr), those of nested jaxprs included."""
+    jaxpr = getattr(jaxpr, "jaxpr", jaxpr)
+    n = 0
+    for eqn in jaxpr.eqns:
+        n += 1
+        for value in eqn.params.values():
+            for sub in value if isinstance(value, (list, tuple)) else (value,):
+                if hasattr(getattr(sub, "jaxpr", sub), "eqns"):
+                    n += equation_count(sub)
+    return n
+
+
+def _too_long(affine_program) -> tuple[str, str] | None:
+    """("interval", report) when the affine program is too long to compile, else None."""
+    n = equation_count(affine_program.jaxpr)
+    if n <= AFFINE_MAX_EQUATIONS:
+        return None
+    return "interval", (f"auto: interval (the affine extension of f is {n:,} equations, "
+                        f"over {AFFINE_MAX_EQUATIONS:,}: its compile would take minutes; "
+                        "not measured)")
+
+
+def _measure(g, lo, hi, w, params, rounding: str) -> tuple[str, str]:
+    p, D, pts = _pieces(lo, hi)
+    programs = _width_programs(g, w, params, rounding)
+    too_long = _too_long(programs["affine"])
+    if too_long is not None:
+        return too_long
+    vals = on_points(g)(pts[..., 0], pts[..., 1], pts[..., 2], w, params)
+    widths = {arithmetic: program.lower().compile()(p, D, w, params)
+              for arithmetic, program in programs.items()}
     return _pick(vals, widths, COST_RATIO, "")
 
 
