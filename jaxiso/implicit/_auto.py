@@ -68,7 +68,7 @@ def choose_arithmetic(f, g, lo, hi, w, params, rounding: str, tape=None
     if any(concrete(x) is None for x in leaves):
         if tape is not None:
             return "interval", "auto: interval (prepared under a trace: nothing measured)"
-        too_long = _too_long(_width_programs(g, w, params, rounding)["affine"])
+        too_long = _width_programs(g, w, params, rounding)[1]
         return too_long or ("affine", "auto: affine (prepared under a trace: nothing measured)")
     progress = Progress()
 
@@ -114,25 +114,22 @@ def _pick(vals, widths: dict, cost: float, what: str) -> tuple[str, str]:
                   f"affine {af:.3g})")
 
 
-def _width_programs(g, w, params, rounding: str) -> dict:
-    """{arithmetic: the traced (not compiled) program of the enclosures' widths on the
-    sample pieces, a `jax.stages.Traced` of (p, D, w, params)}; traced on the arguments'
-    shapes, so it works for traced w and params too."""
+def _width_program(g, arithmetic: str, w, params, rounding: str):
+    """The traced (not compiled) program of the enclosures' widths on the sample pieces
+    in `arithmetic`, a `jax.stages.Traced` of (p, D, w, params); traced on the
+    arguments' shapes, so it works for traced w and params too."""
     s0, s1 = jnp.zeros(N_PIECES), jnp.ones(N_PIECES)
     piece = jax.ShapeDtypeStruct((N_PIECES, 3), jnp.float32)
     shapes = (piece, piece) + jax.tree_util.tree_map(
         lambda v: jax.ShapeDtypeStruct(jnp.shape(v), jnp.result_type(v)), (w, params))
-    programs = {}
-    for arithmetic in ("interval", "affine"):
-        F = extended(g, arithmetic, rounding)
+    F = extended(g, arithmetic, rounding)
 
-        # one compile: eager, the interpreter dispatches thousands of small ops
-        def width(p, D, w, params, F=F, arithmetic=arithmetic):
-            r = enclosure(F, ray_boxes(p, D, s0, s1, arithmetic), w, params, arithmetic)
-            return r.hi - r.lo
+    # one compile: eager, the interpreter dispatches thousands of small ops
+    def width(p, D, w, params):
+        r = enclosure(F, ray_boxes(p, D, s0, s1, arithmetic), w, params, arithmetic)
+        return r.hi - r.lo
 
-        programs[arithmetic] = jax.jit(width).trace(*shapes)
-    return programs
+    return jax.jit(width).trace(*shapes)
 
 
 def equation_count(jaxpr) -> int:
@@ -148,20 +145,36 @@ def equation_count(jaxpr) -> int:
     return n
 
 
-def _too_long(affine_program) -> tuple[str, str] | None:
-    """("interval", report) when the affine program is too long to compile, else None."""
-    n = equation_count(affine_program.jaxpr)
-    if n <= AFFINE_MAX_EQUATIONS:
-        return None
-    return "interval", (f"auto: interval (the affine extension of f is {n:,} equations, "
-                        f"over {AFFINE_MAX_EQUATIONS:,}: its compile would take minutes; "
-                        "not measured)")
+# An affine program is at least this many times its interval one (measured 1.9x on the
+# fox network to 12x on a superquadric, session 23), so an interval program over
+# AFFINE_MAX_EQUATIONS / AFFINE_OVER_INTERVAL equations is not traced in affine at all
+# (tracing a 79k-equation affine program took 9 s)
+AFFINE_OVER_INTERVAL = 1.9
+
+
+def _width_programs(g, w, params, rounding: str) -> tuple[dict, tuple[str, str] | None]:
+    """({arithmetic: its width program (`_width_program`)}, None), or ({...}, ("interval",
+    report)) when the affine program is too long to compile (then it is not in the dict,
+    and it is not traced at all when the interval program already shows it)."""
+    programs = {"interval": _width_program(g, "interval", w, params, rounding)}
+    n = equation_count(programs["interval"].jaxpr)
+    if n * AFFINE_OVER_INTERVAL > AFFINE_MAX_EQUATIONS:
+        return programs, ("interval", (
+            f"auto: interval (the interval extension of f is {n:,} equations, its affine "
+            f"one at least {AFFINE_OVER_INTERVAL}x that, over {AFFINE_MAX_EQUATIONS:,}: "
+            "its compile would take minutes; not measured)"))
+    programs["affine"] = _width_program(g, "affine", w, params, rounding)
+    n = equation_count(programs["affine"].jaxpr)
+    if n > AFFINE_MAX_EQUATIONS:
+        return programs, ("interval", (
+            f"auto: interval (the affine extension of f is {n:,} equations, over "
+            f"{AFFINE_MAX_EQUATIONS:,}: its compile would take minutes; not measured)"))
+    return programs, None
 
 
 def _measure(g, lo, hi, w, params, rounding: str) -> tuple[str, str]:
     p, D, pts = _pieces(lo, hi)
-    programs = _width_programs(g, w, params, rounding)
-    too_long = _too_long(programs["affine"])
+    programs, too_long = _width_programs(g, w, params, rounding)
     if too_long is not None:
         return too_long
     vals = on_points(g)(pts[..., 0], pts[..., 1], pts[..., 2], w, params)
