@@ -59,8 +59,8 @@ def choose_arithmetic(f, g, lo, hi, w, params, rounding: str, tape=None
     """(arithmetic, report) for the field g (of the user's f) on the box [lo, hi] at w
     and params; for a long program, `tape` (its instruction tape), measured on the tape
     evaluator; measured once per f, rounding and box (`_CHOICES`, emptied by
-    `jaxiso.clear_caches`). Traced inputs (a scene prepared under jit) are neither
-    measured nor looked up: they get "affine", which converges on every f jaxiso
+    `jaxiso.clear_caches`). Traced inputs (a scene prepared under jit) are not
+    measured: they get "affine", which converges on every f jaxiso
     extends ("interval" for a long program, the tape path's first arithmetic, or where
     the affine extension is over `AFFINE_MAX_EQUATIONS`), and the report says so
     (prepare the scene outside the trace, `ImplicitSurface.prepared`)."""
@@ -68,8 +68,13 @@ def choose_arithmetic(f, g, lo, hi, w, params, rounding: str, tape=None
     if any(concrete(x) is None for x in leaves):
         if tape is not None:
             return "interval", "auto: interval (prepared under a trace: nothing measured)"
-        too_long = _width_programs(g, w, params, rounding)[1]
-        return too_long or ("affine", "auto: affine (prepared under a trace: nothing measured)")
+        # the count depends on shapes only: once per f, rounding and shapes (a traced
+        # optimisation loop prepares its scene at every step)
+        leaves, tree = jax.tree_util.tree_flatten((w, params))
+        key = (f, rounding, tree, tuple((jnp.shape(v), str(jnp.result_type(v)))
+                                        for v in leaves))
+        return _CHOICES.get(key, lambda: _width_programs(g, w, params, rounding)[1] or (
+            "affine", "auto: affine (prepared under a trace: nothing measured)"))
     progress = Progress()
 
     def measure():
