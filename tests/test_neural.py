@@ -378,6 +378,14 @@ def test_auto_does_not_compile_a_long_affine_extension(monkeypatch):
     scene = ji.ImplicitSurface(lambda x, y, z: x**3 + y**3 + z**3 - 0.5, (-1,) * 3,
                                (1,) * 3)
     assert "equations" not in scene.prepared().arithmetic_report
+    # over the limit, affine is still compiled and measured where interval is hopeless
+    monkeypatch.setattr(_auto, "AFFINE_MAX_EQUATIONS", 100)
+    for good_enough, measured in ((_auto.INTERVAL_GOOD_ENOUGH, False), (0.5, True)):
+        monkeypatch.setattr(_auto, "INTERVAL_GOOD_ENOUGH", good_enough)
+        report = ji.ImplicitSurface(lambda x, y, z: x**3 + y**3 + z**3 - 0.5, (-1,) * 3,
+                                    (1,) * 3).prepared().arithmetic_report
+        assert ("median enclosure width / true range on" in report) == measured, report
+        assert ("affine not compiled" in report) != measured, report
 
 
 def test_auto_under_a_trace_picks_affine():

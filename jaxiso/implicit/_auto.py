@@ -15,7 +15,9 @@ Compile time is part of the choice: the affine rules are 5-10x the interval rule
 code (a product is ~200 jaxpr equations against ~30), and XLA's compile time grows
 faster than linearly with code size. An affine extension of more than
 `AFFINE_MAX_EQUATIONS` equations (counted on the traced measurement, before any compile)
-is not compiled: such an f gets interval, and the report says why.
+is not compiled where interval's enclosures are within `INTERVAL_GOOD_ENOUGH` times the
+true range (polynomials): such an f gets interval, and the report says why. Where
+interval is hopeless (networks) affine is compiled and measured whatever its length.
 """
 
 from __future__ import annotations
@@ -47,6 +49,12 @@ TAPE_COST_RATIO = 8.0
 # terms are 18.8k-28.3k and compile in 12.8-34.5 s, and their renders (twice the code
 # and more) did not finish in 15 minutes; interval renders them.
 AFFINE_MAX_EQUATIONS = 8000
+# ... unless interval is hopeless: a long affine program is still compiled where
+# interval's median enclosure width is over this many times the true range. Networks
+# (200-10,000x, session 23) would otherwise get interval and a render 30x slower (an
+# 8 x 32 elu network written with jnp: 11,973 affine equations); polynomials are within
+# a few times.
+INTERVAL_GOOD_ENOUGH = 16.0
 
 
 # choices by (f, rounding, box): the choice is a property of the function on its box,
@@ -62,8 +70,9 @@ def choose_arithmetic(f, g, lo, hi, w, params, rounding: str, tape=None
     `jaxiso.clear_caches`). Traced inputs (a scene prepared under jit) are not
     measured: they get "affine", which converges on every f jaxiso
     extends ("interval" for a long program, the tape path's first arithmetic, or where
-    the affine extension is over `AFFINE_MAX_EQUATIONS`), and the report says so
-    (prepare the scene outside the trace, `ImplicitSurface.prepared`)."""
+    the affine extension is over `AFFINE_MAX_EQUATIONS`: nothing tells there whether
+    interval is good enough), and the report says so (prepare the scene outside the
+    trace, `ImplicitSurface.prepared`)."""
     leaves = [lo, hi, w] + jax.tree_util.tree_leaves(params)
     if any(concrete(x) is None for x in leaves):
         if tape is not None:
@@ -73,8 +82,10 @@ def choose_arithmetic(f, g, lo, hi, w, params, rounding: str, tape=None
         leaves, tree = jax.tree_util.tree_flatten((w, params))
         key = (f, rounding, tree, tuple((jnp.shape(v), str(jnp.result_type(v)))
                                         for v in leaves))
-        return _CHOICES.get(key, lambda: _width_programs(g, w, params, rounding)[1] or (
-            "affine", "auto: affine (prepared under a trace: nothing measured)"))
+        too_long = _CHOICES.get(key, lambda: _width_programs(g, w, params, rounding)[1])
+        if too_long:
+            return "interval", f"auto: interval ({too_long}; prepared under a trace)"
+        return "affine", "auto: affine (prepared under a trace: nothing measured)"
     progress = Progress()
 
     def measure():
@@ -102,16 +113,21 @@ def _pieces(lo, hi):
     return p, D, p[:, None, :] + s[None, :, None] * D[:, None, :]
 
 
-def _pick(vals, widths: dict, cost: float, what: str) -> tuple[str, str]:
-    """Affine when its median width / true range is more than `cost` times smaller."""
-    vals = np.asarray(vals, np.float64)
+def _median_ratio(vals, width) -> float:
+    """Median over the pieces of enclosure width / true range (vals: [pieces, samples]
+    point values, a lower bound of the range; pieces where f is not finite or constant
+    are left out)."""
+    vals = np.asarray(vals, np.float64).reshape(N_PIECES, -1)
     true = vals.max(axis=1) - vals.min(axis=1)
     ok = np.isfinite(vals).all(axis=1) & (true > 0)
-    ratios = {}
-    for arithmetic, width in widths.items():
-        width = np.asarray(width, np.float64)
-        ratio = np.where(np.isfinite(width), width, np.inf)[ok] / true[ok]
-        ratios[arithmetic] = float(np.median(ratio)) if ratio.size else np.inf
+    width = np.asarray(width, np.float64)
+    ratio = np.where(np.isfinite(width), width, np.inf)[ok] / true[ok]
+    return float(np.median(ratio)) if ratio.size else np.inf
+
+
+def _pick(vals, widths: dict, cost: float, what: str) -> tuple[str, str]:
+    """Affine when its median width / true range is more than `cost` times smaller."""
+    ratios = {a: _median_ratio(vals, width) for a, width in widths.items()}
     ia_, af = ratios["interval"], ratios["affine"]
     pick = "affine" if ia_ > cost * af else "interval"
     return pick, (f"auto: {pick} ({what}median enclosure width / true range on {N_PIECES} "
@@ -157,34 +173,38 @@ def equation_count(jaxpr) -> int:
 AFFINE_OVER_INTERVAL = 1.9
 
 
-def _width_programs(g, w, params, rounding: str) -> tuple[dict, tuple[str, str] | None]:
-    """({arithmetic: its width program (`_width_program`)}, None), or ({...}, ("interval",
-    report)) when the affine program is too long to compile (then it is not in the dict,
-    and it is not traced at all when the interval program already shows it)."""
+def _width_programs(g, w, params, rounding: str) -> tuple[dict, str | None]:
+    """({arithmetic: its width program (`_width_program`)}, None), or ({...}, why) when
+    the affine program is too long to compile (it is not traced at all, and not in the
+    dict, when the interval program's length already shows it)."""
     programs = {"interval": _width_program(g, "interval", w, params, rounding)}
     n = equation_count(programs["interval"].jaxpr)
     if n * AFFINE_OVER_INTERVAL > AFFINE_MAX_EQUATIONS:
-        return programs, ("interval", (
-            f"auto: interval (the interval extension of f is {n:,} equations, its affine "
-            f"one at least {AFFINE_OVER_INTERVAL}x that, over {AFFINE_MAX_EQUATIONS:,}: "
-            "its compile would take minutes; not measured)"))
+        return programs, (f"the interval extension of f is {n:,} equations, its affine "
+                          f"one at least {AFFINE_OVER_INTERVAL}x that, over "
+                          f"{AFFINE_MAX_EQUATIONS:,}")
     programs["affine"] = _width_program(g, "affine", w, params, rounding)
     n = equation_count(programs["affine"].jaxpr)
     if n > AFFINE_MAX_EQUATIONS:
-        return programs, ("interval", (
-            f"auto: interval (the affine extension of f is {n:,} equations, over "
-            f"{AFFINE_MAX_EQUATIONS:,}: its compile would take minutes; not measured)"))
+        return programs, (f"the affine extension of f is {n:,} equations, over "
+                          f"{AFFINE_MAX_EQUATIONS:,}")
     return programs, None
 
 
 def _measure(g, lo, hi, w, params, rounding: str) -> tuple[str, str]:
     p, D, pts = _pieces(lo, hi)
     programs, too_long = _width_programs(g, w, params, rounding)
-    if too_long is not None:
-        return too_long
     vals = on_points(g)(pts[..., 0], pts[..., 1], pts[..., 2], w, params)
-    widths = {arithmetic: program.lower().compile()(p, D, w, params)
-              for arithmetic, program in programs.items()}
+    widths = {"interval": programs["interval"].lower().compile()(p, D, w, params)}
+    if too_long is not None:
+        ratio = _median_ratio(vals, widths["interval"])
+        if ratio <= INTERVAL_GOOD_ENOUGH:
+            return "interval", (f"auto: interval ({too_long}, and interval's median "
+                                f"enclosure width / true range is {ratio:.3g}: affine "
+                                "not compiled)")
+        if "affine" not in programs:
+            programs["affine"] = _width_program(g, "affine", w, params, rounding)
+    widths["affine"] = programs["affine"].lower().compile()(p, D, w, params)
     return _pick(vals, widths, COST_RATIO, "")
 
 
