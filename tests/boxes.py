@@ -86,3 +86,15 @@ def assert_encloses(lo, hi, values, what, ulps=0.0):
         raise AssertionError(
             f"{what}: {int((~ok).sum())} violations; e.g. box row {i}: value {v[i, j]!r} "
             f"not in [{lo[i, 0]!r}, {hi[i, 0]!r}]")
+
+
+def sized_boxes_and_points(rng, n, k, max_halvings):
+    """n float32 boxes in [-1, 1]^3 of edge 2^-u, u uniform in [0, max_halvings], and k
+    float64 points in each (its two corners first): (lo [3, n], hi [3, n], pts [n, k, 3])."""
+    size = 2.0 ** -rng.uniform(0, max_halvings, size=n)
+    lo = rng.uniform(-1, 1, size=(3, n)) * (1 - size)
+    lo, hi = lo.astype(np.float32), (lo + size).astype(np.float32)
+    t = rng.uniform(size=(n, k, 3))
+    t[:, 0], t[:, 1] = 0.0, 1.0
+    pts = lo.T[:, None].astype(np.float64) + t * (hi - lo).T[:, None].astype(np.float64)
+    return lo, hi, pts

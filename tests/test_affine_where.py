@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from boxes import assert_encloses
+from boxes import assert_encloses, sized_boxes_and_points
 
 import jaxiso as ji
 from jaxiso.arith import Affine, Interval, aa, ia
@@ -184,16 +184,9 @@ def test_where_spellings_are_sound_against_float64():
         return xp.where(h[::-1] > h, h2 - h, xp.abs(h2) - 0.5)
 
     f = _mlp(act, seed=4, width=6, depth=2)
-    rng = np.random.default_rng(5)
-    n = 24
-    size = 2.0 ** -rng.uniform(0, 6, size=n)
-    lo = rng.uniform(-1, 1, size=(3, n)) * (1 - size)
-    lo, hi = lo.astype(np.float32), (lo + size).astype(np.float32)
+    lo, hi, pts = sized_boxes_and_points(np.random.default_rng(5), 24, 24, 6)
     boxes = [Interval(jnp.asarray(lo[i]), jnp.asarray(hi[i])) for i in range(3)]
     F = jax.jit(ji.extend(lambda x, y, z: f(x, y, z), "affine", "outward", fresh_symbols=8))
     out = aa.to_interval(F(*boxes))
-    t = rng.uniform(size=(n, 24, 3))
-    t[:, 0], t[:, 1] = 0.0, 1.0
-    pts = lo.T[:, None].astype(np.float64) + t * (hi - lo).T[:, None].astype(np.float64)
     vals = np.array([[f(*p, xp=np) for p in row] for row in pts])
     assert_encloses(out.lo, out.hi, vals, "where-spelled network")

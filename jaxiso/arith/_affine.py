@@ -51,6 +51,7 @@ from ._affine_type import (  # noqa: F401 - re-exported: aa is the namespace
     Affine,
     all_defined,
     as_affine,
+    bounded,
     from_interval,
     guard,
     guard_unbounded,
@@ -85,9 +86,11 @@ def _broadcast(x: Affine, shape) -> Affine:
     shape = tuple(shape)
     if shape == jnp.shape(x.center) == jnp.shape(x.err) == jnp.shape(x.dev)[:-1]:
         return x
-    return Affine(jnp.broadcast_to(x.center, shape),
-                  jnp.broadcast_to(x.dev, tuple(shape) + x.dev.shape[-1:]),
-                  jnp.broadcast_to(x.err, shape), jnp.broadcast_to(x.defined, shape))
+    def part(a):
+        return jnp.broadcast_to(a, shape)
+
+    return Affine(part(x.center), jnp.broadcast_to(x.dev, tuple(shape) + x.dev.shape[-1:]),
+                  part(x.err), part(x.defined), part(x.lo), part(x.hi))
 
 
 def _shifted(a, c, sign: float):
@@ -98,7 +101,8 @@ def _shifted(a, c, sign: float):
     # a NaN constant makes the empty form (NaN error term), as `as_affine` does
     err = a.err + jnp.where(jnp.isnan(c), jnp.nan, 0.0).astype(c.dtype)
     err = jnp.broadcast_to(err, jnp.broadcast_shapes(jnp.shape(a.err), jnp.shape(c)))
-    return _broadcast(Affine(a.center + sign * c, a.dev, err, a.defined), shape)
+    return _broadcast(Affine(a.center + sign * c, a.dev, err, a.defined,
+                             a.lo + sign * c, a.hi + sign * c), shape)
 
 
 def _is_const(x) -> bool:
@@ -179,7 +183,10 @@ def _linearized(x: Affine, alpha, d_lo, d_hi, fallback_iv: Interval, defined) ->
     # monotone); it reads per-element coefficients only, so XLA computes each component
     # of the result on its own (a test on the result itself fused all of them into each)
     bound = jnp.abs(alpha) * (jnp.abs(x.center) + radius(x)) + jnp.abs(zeta) + delta
-    return select(jnp.isfinite(bound), out, interval_fallback(fallback_iv, x.n))
+    # the interval result bounds the values too (exp of a form reaching above its
+    # bound stays finite where it is taken: `Affine.lo`)
+    return bounded(select(jnp.isfinite(bound), out, interval_fallback(fallback_iv, x.n)),
+                   fallback_iv)
 
 
 # Relative safety margin (in f32 ulps) on linearisation errors: the endpoint values,
@@ -336,7 +343,8 @@ def relu(a) -> Affine:
                  a.defined)
     quarter = 0.25 * float(jnp.finfo(lo.dtype).max)
     moderate = (jnp.abs(lo) < quarter) & (jnp.abs(hi) < quarter)  # False for NaN
-    return select(moderate, out, interval_fallback(ia.maximum(iv, 0.0), a.n))
+    values = ia.maximum(iv, 0.0)
+    return bounded(select(moderate, out, interval_fallback(values, a.n)), values)
 
 
 def _is_concrete(x) -> bool:
@@ -364,14 +372,16 @@ def maximum(a, b) -> Affine:
         return _broadcast(relu(x), shape)
     a, b = lift(a, b)
     d = padded_range(sub(a, b))
-    return select(d.lo >= 0, a, select(d.hi <= 0, b, add(b, relu(sub(a, b)))))
+    out = select(d.lo >= 0, a, select(d.hi <= 0, b, add(b, relu(sub(a, b)))))
+    return bounded(out, ia.maximum(padded_range(a), padded_range(b)))
 
 
 def minimum(a, b) -> Affine:
     """min(a, b) = a - relu(a - b): exactly a or b where the difference has a sign."""
     a, b = lift(a, b)
     d = padded_range(sub(a, b))
-    return select(d.lo >= 0, b, select(d.hi <= 0, a, sub(a, relu(sub(a, b)))))
+    out = select(d.lo >= 0, b, select(d.hi <= 0, a, sub(a, relu(sub(a, b)))))
+    return bounded(out, ia.minimum(padded_range(a), padded_range(b)))
 
 
 def clamp(lower, x, upper) -> Affine:
@@ -661,8 +671,8 @@ def select_n(which, *cases, sign: Affine | None = None) -> Affine:
     else:
         cases, sign = lift(*cases), None
     # the hull as a form (its centre and radius rounded: an ulp more)
-    hull = widen(interval_fallback(ia.select_n(which, *[padded_range(c) for c in cases]),
-                                   cases[0].n))
+    values = ia.select_n(which, *[padded_range(c) for c in cases])
+    hull = widen(interval_fallback(values, cases[0].n))
     w_lo, w_hi = which.lo.astype(jnp.int32), which.hi.astype(jnp.int32)
     joined, started = cases[0], w_lo <= 0
     for i, c in enumerate(cases[1:], 1):
@@ -676,7 +686,7 @@ def select_n(which, *cases, sign: Affine | None = None) -> Affine:
     # the hull where the join's uncorrelated part is wider than the hull itself
     tighter = is_finite(joined) & ~(joined.err > radius(hull))
     out = select(tighter, joined, hull)
-    out = Affine(out.center, out.dev, out.err, hull.defined)  # the cases it may take
+    out = bounded(Affine(out.center, out.dev, out.err, hull.defined), values)
     certain = which.lo == which.hi
     for i, c in enumerate(cases):
         out = select(certain & (w_lo == i), c, out)
@@ -699,8 +709,11 @@ def widen(a: Affine, ulps: float = 1.0, scale=None) -> Affine:
     mag = jnp.abs(a.center) + radius(a)
     if scale is not None:
         mag = mag + scale
-    err = a.err + jnp.minimum(ulps * eps, 1.0) * mag + tiny * (a.n + 2)
-    return Affine(a.center, a.dev, err, a.defined)
+    step = jnp.minimum(ulps * eps, 1.0)
+    err = a.err + step * mag + tiny * (a.n + 2)
+    return Affine(a.center, a.dev, err, a.defined, a.lo - step * jnp.abs(a.lo) - tiny,
+                  a.hi + step * jnp.abs(a.hi) + tiny)
+
 
 
 Affine.ops = sys.modules[__name__]

@@ -29,16 +29,29 @@ class Affine(OperatorsMixin):
       dev: [*S, n] partial deviations, one per noise symbol (n is static).
       err: [*S] non-negative accumulated error (the AF1 ``e_{n+1}`` term).
       defined: [*S] bool, as for `Interval` (False where a domain part was dropped).
+      lo, hi: [*S] bounds known besides the form (default -inf, inf): the values are
+        the form's that lie in ``[lo, hi]``. A rule whose interval result is cheap sets
+        them (``min(h, 0) <= 0`` where the form's range reaches above 0, so that
+        ``exp`` of it does not overflow); a case of a ``where`` is bounded where it is
+        taken (`_branches`). `to_interval` and `padded_range` clip by them, so every
+        rule linearises over the values only; a rule that ignores them is still sound.
     """
 
     center: jax.Array
     dev: jax.Array
     err: jax.Array
     defined: jax.Array = None
+    lo: jax.Array = None
+    hi: jax.Array = None
 
     def __post_init__(self):
+        shape = np.shape(self.center)
         if self.defined is None:
-            object.__setattr__(self, "defined", jnp.ones(np.shape(self.center), bool))
+            object.__setattr__(self, "defined", jnp.ones(shape, bool))
+        dtype = jnp.result_type(self.center)
+        for name, end in (("lo", -jnp.inf), ("hi", jnp.inf)):
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, jnp.full(shape, end, dtype))
 
     __array_ufunc__ = None
 
@@ -53,14 +66,16 @@ class Affine(OperatorsMixin):
     def __getitem__(self, index):
         s = self.shape
         idx = index if isinstance(index, tuple) else (index,)
-        return Affine(jnp.broadcast_to(self.center, s)[index],
+        def part(a):
+            return jnp.broadcast_to(a, s)[index]
+
+        return Affine(part(self.center),
                       jnp.broadcast_to(self.dev, s + (self.n,))[idx + (Ellipsis, slice(None))],
-                      jnp.broadcast_to(self.err, s)[index],
-                      jnp.broadcast_to(self.defined, s)[index])
+                      part(self.err), part(self.defined), part(self.lo), part(self.hi))
 
     def __repr__(self):
         return (f"Affine(center={self.center!r}, dev={self.dev!r}, err={self.err!r}, "
-                f"defined={self.defined!r})")
+                f"defined={self.defined!r}, lo={self.lo!r}, hi={self.hi!r})")
 
 
 # ----------------------------------------------------------------------- conversion
@@ -76,21 +91,34 @@ def radius(x: Affine):
 
 
 def to_interval(x: Affine) -> Interval:
-    """Eq. 6.9: ``[center - rad, center + rad]``."""
+    """Eq. 6.9: ``[center - rad, center + rad]``, clipped by the bounds."""
+    return _clipped(x, *_form_range(x))
+
+
+def _form_range(x: Affine):
+    """The form's own ``center -+ rad`` (an overflowed form: the whole line)."""
     r = radius(x)
     lo, hi = x.center - r, x.center + r
     # inf - inf from an overflowed form is not empty: only a NaN error term means empty
     overflow = ~is_empty(x)
     lo = jnp.where(jnp.isnan(lo) & overflow, -jnp.inf, lo)
     hi = jnp.where(jnp.isnan(hi) & overflow, jnp.inf, hi)
-    return Interval(lo, hi, x.defined)
+    return lo, hi
+
+
+def _clipped(x: Affine, lo, hi) -> Interval:
+    """[lo, hi] clipped by the form's bounds; where rounding left the two disjoint (both
+    enclose the values: it cannot be otherwise) the range is kept unclipped."""
+    c_lo, c_hi = jnp.maximum(lo, x.lo), jnp.minimum(hi, x.hi)
+    keep = c_lo <= c_hi
+    return Interval(jnp.where(keep, c_lo, lo), jnp.where(keep, c_hi, hi), x.defined)
 
 
 def padded_range(x: Affine) -> Interval:
     """`to_interval` padded by an ulp of ``|center| + rad``: the range the rules work on.
     Rounding ``center +- rad`` to nearest can cut into the set (far from 0 the centre
     cannot even hold a small endpoint), so internal conversions pad all but exact points."""
-    iv = to_interval(x)
+    lo, hi = _form_range(x)
     finfo = jnp.finfo(jnp.result_type(x.center))
     pad = float(finfo.eps) * jnp.abs(x.center) + float(finfo.eps) * radius(x) + float(
         finfo.tiny)  # two terms: their sum could overflow near the float32 maximum
@@ -98,7 +126,12 @@ def padded_range(x: Affine) -> Interval:
     # (centre +- 0 is not rounded: floor(x) = [k, k] must compare with 0 as IA does)
     point = (x.err == 0) & jnp.all(x.dev == 0, axis=-1)
     pad = jnp.where(jnp.isnan(x.center) | jnp.isinf(x.center) | point, 0.0, pad)
-    return Interval(iv.lo - pad, iv.hi + pad, iv.defined)
+    return _clipped(x, lo - pad, hi + pad)
+
+
+def bounded(x: Affine, iv: Interval) -> Affine:
+    """x with its bounds narrowed to `iv` too (an enclosure of x's values)."""
+    return dataclasses.replace(x, lo=jnp.fmax(x.lo, iv.lo), hi=jnp.fmin(x.hi, iv.hi))
 
 
 def from_interval(x, symbol: int | None = None, n: int = 1) -> Affine:
@@ -136,7 +169,7 @@ def with_symbols(x: Affine, n: int) -> Affine:
     if x.n > n:
         raise ValueError(f"an affine form with {x.n} noise symbols cannot have {n}")
     pad = [(0, 0)] * (np.ndim(x.dev) - 1) + [(0, n - x.n)]
-    return Affine(x.center, jnp.pad(x.dev, pad), x.err, x.defined)
+    return dataclasses.replace(x, dev=jnp.pad(x.dev, pad))
 
 
 def as_affine(x, n: int) -> Affine:
@@ -183,7 +216,8 @@ def select(mask, a: Affine, b: Affine) -> Affine:
     return Affine(jnp.where(mask, a.center, b.center),
                   jnp.where(mask[..., None], a.dev, b.dev),
                   jnp.where(mask, a.err, b.err),
-                  jnp.where(mask, a.defined, b.defined))
+                  jnp.where(mask, a.defined, b.defined),
+                  jnp.where(mask, a.lo, b.lo), jnp.where(mask, a.hi, b.hi))
 
 
 def is_finite(x: Affine):

@@ -39,7 +39,8 @@ def move_data(prim, params, invals, operands: slice) -> list:
         devs = jax.vmap(bind, in_axes=-1, out_axes=-1)(*[d.dev for d in data])
         return [Affine(*parts) for parts in zip(
             bind(*[d.center for d in data]), devs, bind(*[d.err for d in data]),
-            bind(*[d.defined for d in data]))]
+            bind(*[d.defined for d in data]), bind(*[d.lo for d in data]),
+            bind(*[d.hi for d in data]))]
     data = [ia.as_interval(d) for d in data]
     return [Interval(*parts) for parts in zip(
         bind(*[d.lo for d in data]), bind(*[d.hi for d in data]),

@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import weakref
 from collections.abc import Callable
 
 import jax
@@ -26,8 +27,8 @@ from jax import lax
 from jax.extend import core as jcore
 
 from . import _affine as aa
+from . import _branches, _lift
 from . import _interval as ia
-from . import _lift
 from ._affine import Affine
 from ._array_rules import move_data
 from ._interval import Interval
@@ -297,16 +298,24 @@ def _call_body(eqn):
 def _eval_jaxpr(jaxpr, consts, args, ctx: _Context):
     env = {}
     seen = {}  # an equation's key (`_same_equation`) -> its outputs
+    plan = _plan(jaxpr)
+    pending = {}  # outputs of equations deferred by the plan -> their equation
+    held = []  # clipped cases: alive until the end, so `seen`'s ids stay unique
 
     def read(v):
-        return v.val if isinstance(v, jcore.Literal) else env[v]
+        if isinstance(v, jcore.Literal):
+            return v.val
+        if v not in env and v in pending:  # a deferred equation that is needed after all
+            run(pending[v])
+        return env[v]
 
-    for v, c in zip(jaxpr.constvars, consts):
-        env[v] = c
-    for v, a in zip(jaxpr.invars, args):
-        env[v] = a
-    for eqn in jaxpr.eqns:
-        invals = [read(v) for v in eqn.invars]
+    def run(i):
+        eqn = jaxpr.eqns[i]
+        if i in plan.selections:
+            invals = _taken_cases(jaxpr, eqn, plan.selections[i], read, ctx)
+            held.append(invals)
+        else:
+            invals = [read(v) for v in eqn.invars]
         key = _same_equation(eqn, invals)
         outs = seen.get(key) if key is not None else None
         if outs is None:
@@ -315,7 +324,56 @@ def _eval_jaxpr(jaxpr, consts, args, ctx: _Context):
                 seen[key] = outs
         for v, o in zip(eqn.outvars, outs):
             env[v] = o
+
+    for v, c in zip(jaxpr.constvars, consts):
+        env[v] = c
+    for v, a in zip(jaxpr.invars, args):
+        env[v] = a
+    for i, eqn in enumerate(jaxpr.eqns):
+        if i in plan.deferred:
+            pending.update((v, i) for v in eqn.outvars)
+        else:
+            run(i)
     return [read(v) for v in jaxpr.outvars]
+
+
+_PLANS = weakref.WeakKeyDictionary()  # jaxpr -> its `_branches.plan`
+
+
+def _plan(jaxpr) -> _branches.Plan:
+    if jaxpr not in _PLANS:
+        _PLANS[jaxpr] = _branches.plan(jaxpr, _call_body)
+    return _PLANS[jaxpr]
+
+
+def _float_lifted(x) -> bool:
+    return is_lifted(x) and jnp.issubdtype(
+        (x.center if isinstance(x, Affine) else x.lo).dtype, jnp.floating)
+
+
+def _taken_cases(jaxpr, eqn, sel, read, ctx: _Context) -> list:
+    """The operands of a selection, each case recomputed where it is taken
+    (`_branches`): the compared operands clipped by each other, its slice re-run."""
+    u, v = read(sel.u), read(sel.v)
+    clip = [(var, x) for var, x in ((sel.u, u), (sel.v, v))
+            if isinstance(var, jcore.Var) and _float_lifted(x)]
+    recomputed = {case.position for case in sel.cases} if clip else set()
+    invals = [None if k in recomputed else read(w) for k, w in enumerate(eqn.invars)]
+    for case in sel.cases if clip else ():
+        u_below, v_below = _branches.bounds(sel.comparison, case.taken_when)
+        local = {var: _branches.taken_side(x, v if var is sel.u else u,
+                                           u_below if var is sel.u else v_below)
+                 for var, x in clip}
+
+        def read_local(w):
+            return local[w] if isinstance(w, jcore.Var) and w in local else read(w)
+
+        for k in case.slice:
+            step = jaxpr.eqns[k]
+            outs = _apply(step, [read_local(w) for w in step.invars], ctx)
+            local.update(zip(step.outvars, outs))
+        invals[case.position] = read_local(eqn.invars[case.position])
+    return invals
 
 
 def _same_equation(eqn, invals):
