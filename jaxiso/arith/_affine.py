@@ -117,12 +117,20 @@ def add(a, b) -> Affine:
     a, b = lift(a, b)
     # no overflow guard needed: an overflowed centre with a finite error term reads as
     # the entire line in `to_interval` / `padded_range`
-    return Affine(a.center + b.center, a.dev + b.dev, a.err + b.err, all_defined(a, b))
+    return Affine(a.center + b.center, a.dev + b.dev, a.err + b.err, all_defined(a, b),
+                  *_bounds_sum(a.lo, a.hi, b.lo, b.hi))
+
+
+def _bounds_sum(a_lo, a_hi, b_lo, b_hi):
+    """Bounds of a sum from its terms' bounds (a where-case's ``h <= 0`` stays known in
+    ``h - 0`` and ``h + k``); a NaN (``inf - inf``) is no bound."""
+    lo, hi = a_lo + b_lo, a_hi + b_hi
+    return jnp.where(jnp.isnan(lo), -jnp.inf, lo), jnp.where(jnp.isnan(hi), jnp.inf, hi)
 
 
 def neg(a) -> Affine:
     (a,) = lift(a)
-    return Affine(-a.center, -a.dev, a.err, a.defined)
+    return Affine(-a.center, -a.dev, a.err, a.defined, -a.hi, -a.lo)
 
 
 def sub(a, b) -> Affine:
@@ -132,7 +140,8 @@ def sub(a, b) -> Affine:
     if _is_const(b) and isinstance(a, Affine):
         return _shifted(a, b, -1.0)
     a, b = lift(a, b)
-    return Affine(a.center - b.center, a.dev - b.dev, a.err + b.err, all_defined(a, b))
+    return Affine(a.center - b.center, a.dev - b.dev, a.err + b.err, all_defined(a, b),
+                  *_bounds_sum(a.lo, a.hi, -b.hi, -b.lo))
 
 
 def _is_point(x: Affine):
@@ -363,13 +372,27 @@ def _is_zero(x) -> bool:
     return _is_concrete(x) and bool(np.all(np.asarray(x) == 0))
 
 
+def _max_constant(x, c) -> Affine:
+    """max(x, c) for a constant c: ``c + relu(x - c)``, relu's chord on the shifted form
+    (the shifts move only centres and bounds; one scaling of the deviations)."""
+    (x,) = lift(x)
+    c = jnp.asarray(c, x.center.dtype)
+    shape = jnp.broadcast_shapes(jnp.shape(x.center), jnp.shape(c))
+    if _is_zero(c):  # relu itself: no shifts
+        return _broadcast(relu(x), shape)
+    x = _broadcast(x, shape)
+    iv = padded_range(x)
+    across = _shifted(relu(_shifted(x, c, -1.0)), c, 1.0)
+    # exactly x or c where the range is on one side (x - c + c would round a tiny x away)
+    out = select(iv.lo >= c, x, select(iv.hi <= c, as_affine(jnp.broadcast_to(c, shape),
+                                                             x.n), across))
+    return bounded(out, ia.maximum(iv, c))
+
+
 def maximum(a, b) -> Affine:
     """max(a, b) = b + relu(a - b): exactly a or b where the difference has a sign."""
-    if _is_zero(b) or _is_zero(a):  # relu: one rule, no shift and no selects around it
-        x, zero = (a, b) if _is_zero(b) else (b, a)
-        (x,) = lift(x)
-        shape = jnp.broadcast_shapes(jnp.shape(x.center), jnp.shape(zero))
-        return _broadcast(relu(x), shape)
+    if _is_concrete(b) or _is_concrete(a):  # a clamp or relu: no lifted constant, no selects
+        return _max_constant(*((a, b) if _is_concrete(b) else (b, a)))
     a, b = lift(a, b)
     d = padded_range(sub(a, b))
     out = select(d.lo >= 0, a, select(d.hi <= 0, b, add(b, relu(sub(a, b)))))
@@ -378,6 +401,9 @@ def maximum(a, b) -> Affine:
 
 def minimum(a, b) -> Affine:
     """min(a, b) = a - relu(a - b): exactly a or b where the difference has a sign."""
+    if _is_concrete(b) or _is_concrete(a):  # min(x, c) = -max(-x, -c)
+        x, c = (a, b) if _is_concrete(b) else (b, a)
+        return neg(_max_constant(neg(x), -np.asarray(c)))
     a, b = lift(a, b)
     d = padded_range(sub(a, b))
     out = select(d.lo >= 0, b, select(d.hi <= 0, a, sub(a, relu(sub(a, b)))))
@@ -591,11 +617,6 @@ def _join(a: Affine, b: Affine) -> Affine:
     return select(is_empty(a), b, select(is_empty(b), a, joined))
 
 
-def _lines_extreme(slopes, intercepts, mu, pick):
-    """pick (max or min) over the lines ``slope mu + intercept`` (last axis) at `mu`."""
-    return pick(slopes * mu[..., None] + intercepts, axis=-1)
-
-
 def _join_on_sign(a: Affine, b: Affine, g: Affine) -> Affine:
     """`_join` for a case `a` taken only where ``g >= 0`` and `b` only where ``g <= 0``
     (``where(p > q, a, b)`` with ``g = p - q``): a chord in g, as relu's.
@@ -626,26 +647,39 @@ def _join_on_sign(a: Affine, b: Affine, g: Affine) -> Affine:
     # the ends of each side's residual as lines in mu: (kappa/2 -+ ... - mu) t + c
     hi_c = (0.5 * (rho_c + rho_r) + a.err, 0.5 * (rho_r - rho_c) + b.err)
     lo_c = (0.5 * (rho_c - rho_r) - a.err, -0.5 * (rho_c + rho_r) - b.err)
-    ts = jnp.stack([*ta, *tb], axis=-1)
-    sigma = jnp.asarray([0.5, 0.5, -0.5, -0.5], dt)
-    slopes = -ts
-    base = sigma * kappa[..., None] * ts
-    hi_i = base + jnp.stack([hi_c[0], hi_c[0], hi_c[1], hi_c[1]], axis=-1)
-    lo_i = base + jnp.stack([lo_c[0], lo_c[0], lo_c[1], lo_c[1]], axis=-1)
-    cands = [jnp.zeros_like(cg)]
+    # four lines per envelope, one per end of the sides, as lists of [...] arrays: the
+    # candidates are scanned one by one (elementwise, one fused loop; stacked as
+    # [..., 13, 4] arrays this rule took 40 ms on 4,096 x 32 neurons against 3 ms)
+    ts = [*ta, *tb]
+    sigma = (0.5, 0.5, -0.5, -0.5)
+    slopes = [-t for t in ts]
+    base = [sg * kappa * t for sg, t in zip(sigma, ts)]
+    hi_i = [bs + c for bs, c in zip(base, (hi_c[0], hi_c[0], hi_c[1], hi_c[1]))]
+    lo_i = [bs + c for bs, c in zip(base, (lo_c[0], lo_c[0], lo_c[1], lo_c[1]))]
+
+    def envelope(mu, ends, pick):
+        out = slopes[0] * mu + ends[0]
+        for sl, e in zip(slopes[1:], ends[1:]):
+            out = pick(out, sl * mu + e)
+        return out
+
+    def width(mu):
+        w = envelope(mu, hi_i, jnp.maximum) - envelope(mu, lo_i, jnp.minimum)
+        return jnp.where(jnp.isnan(w), jnp.inf, w)
+
+    mu = jnp.zeros_like(cg)
+    best = width(mu)
     for ends in (hi_i, lo_i):
         for i in range(4):
             for j in range(i + 1, 4):
-                ds = slopes[..., i] - slopes[..., j]
-                mu = (ends[..., j] - ends[..., i]) / jnp.where(ds != 0, ds, 1.0)
-                cands.append(jnp.where((ds != 0) & jnp.isfinite(mu), mu, 0.0))
-    cands = jnp.stack(cands, axis=-1)  # [..., 13]
-    width = (_lines_extreme(slopes[..., None, :], hi_i[..., None, :], cands, jnp.max)
-             - _lines_extreme(slopes[..., None, :], lo_i[..., None, :], cands, jnp.min))
-    width = jnp.where(jnp.isnan(width), jnp.inf, width)
-    mu = jnp.take_along_axis(cands, jnp.argmin(width, axis=-1)[..., None], axis=-1)[..., 0]
-    hi = _lines_extreme(slopes, hi_i, mu, jnp.max)
-    lo = _lines_extreme(slopes, lo_i, mu, jnp.min)
+                ds = slopes[i] - slopes[j]
+                cand = (ends[j] - ends[i]) / jnp.where(ds != 0, ds, 1.0)
+                cand = jnp.where((ds != 0) & jnp.isfinite(cand), cand, 0.0)
+                w = width(cand)
+                better = w < best  # the first of equal widths, as an argmin
+                mu, best = jnp.where(better, cand, mu), jnp.where(better, w, best)
+    hi = envelope(mu, hi_i, jnp.maximum)
+    lo = envelope(mu, lo_i, jnp.minimum)
     scale = (jnp.abs(a.center) + jnp.abs(b.center) + radius(a) + radius(b)
              + jnp.abs(mu) * (jnp.abs(cg) + rg) + jnp.abs(hi) + jnp.abs(lo))
     return Affine(0.5 * (a.center + b.center) + mu * cg + 0.5 * (hi + lo),

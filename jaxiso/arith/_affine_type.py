@@ -186,7 +186,9 @@ def as_affine(x, n: int) -> Affine:
     # empty form (NaN error term), as the point interval [NaN, NaN] is empty -- not a
     # NaN centre, which reads as an overflow, the entire line
     err = jnp.where(jnp.isnan(x), jnp.nan, jnp.zeros_like(x))
-    return Affine(x, jnp.zeros(x.shape + (n,), x.dtype), err)
+    # the point is its own bounds (so a sum with it keeps the other's: ``h - 0``)
+    return Affine(x, jnp.zeros(x.shape + (n,), x.dtype), err, None,
+                  jnp.where(jnp.isnan(x), -jnp.inf, x), jnp.where(jnp.isnan(x), jnp.inf, x))
 
 
 def n_of(*xs) -> int:

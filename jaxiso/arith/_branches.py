@@ -56,12 +56,53 @@ class Case:
 
 @dataclasses.dataclass(frozen=True)
 class Selection:
-    """A selection at some equation: the compared operands ``u OP v`` and its cases."""
+    """A selection at some equation: the compared operands ``u OP v`` (made by the
+    equation `compare`) and its cases. `inputs`: the variables the comparison, the
+    recomputed cases and the other operands read from outside them; `elementwise`: all
+    of those equations act element by element (each output element reads the same
+    element of each operand), so with one lifted input the selection is a function of
+    that input alone, element by element (`_extend` then evaluates it on a one-symbol
+    stand-in: the same enclosure at a fraction of the work)."""
 
     comparison: str
     u: object  # a Var or a Literal
     v: object
     cases: tuple
+    compare: int
+    predicate: int  # the position of the comparison's result among the operands
+    inputs: frozenset
+    elementwise: bool
+
+
+# lax primitives that act element by element (with operands of one shape or scalars)
+ELEMENTWISE = frozenset({
+    "add", "sub", "mul", "div", "neg", "max", "min", "exp", "exp2", "expm1", "log",
+    "log1p", "tanh", "logistic", "sin", "cos", "tan", "abs", "sqrt", "rsqrt", "cbrt",
+    "pow", "integer_pow", "square", "erf", "erfc", "atan", "atan2", "asinh", "sinh",
+    "cosh", "sign", "select_n", "convert_element_type", "gt", "ge", "lt", "le", "eq",
+    "ne", "and", "or", "not", "floor", "ceil", "round", "clamp", "copy", "copy_p",
+    "stop_gradient", "rem", "nextafter"})
+
+
+def _elementwise(eqn, call_body) -> bool:
+    """Does `eqn` act element by element (a call: every equation of its body)?"""
+    if eqn.primitive.name in ELEMENTWISE:
+        return True
+    body = call_body(eqn)
+    if body is None:
+        return False
+    inner = body.jaxpr if isinstance(body, jcore.ClosedJaxpr) else body
+    shapes = {tuple(v.aval.shape) for v in list(eqn.invars) + list(eqn.outvars)
+              if isinstance(v, jcore.Var)}
+    return len(shapes - {()}) <= 1 and all(_elementwise(e, call_body) for e in inner.eqns)
+
+
+def _inputs(eqns, indices, also) -> frozenset:
+    """The variables that the equations `indices` and the operands `also` read from
+    outside those equations."""
+    made = {v for k in indices for v in eqns[k].outvars}
+    read = [v for k in indices for v in eqns[k].invars] + list(also)
+    return frozenset(v for v in read if isinstance(v, jcore.Var) and v not in made)
 
 
 def _select_positions(eqn, call_body):
@@ -83,6 +124,11 @@ def _select_positions(eqn, call_body):
     if not all(isinstance(v, jcore.Var) and v in where for v in sel.invars):
         return None
     return where[sel.invars[0]], {where[sel.invars[1]]: 0, where[sel.invars[2]]: 1}
+
+
+def _elementwise_selection(eqn, call_body) -> bool:
+    """The selection itself acts element by element (no broadcasting in a call)."""
+    return eqn.primitive.name == "select_n" or _elementwise(eqn, call_body)
 
 
 def _slice(eqns, producer, start, roots, before):
@@ -146,14 +192,24 @@ def plan(jaxpr, call_body) -> Plan:
             if sl or var in roots:
                 made.append(Case(pos, bool(index), sl))
         if made:
-            selections[i] = Selection(eqns[k].primitive.name, u, v, tuple(made))
+            steps = sorted({k} | {j for c in made for j in c.slice})
+            recomputed = {c.position for c in made}
+            others = [w for p, w in enumerate(eqn.invars)
+                      if p != pred_pos and p not in recomputed]
+            selections[i] = Selection(
+                eqns[k].primitive.name, u, v, tuple(made), k, pred_pos,
+                _inputs(eqns, steps, others + [u, v]),
+                all(_elementwise(eqns[j], call_body) for j in steps)
+                and _elementwise_selection(eqn, call_body))
     return Plan(selections, _unneeded(jaxpr, selections))
 
 
 def _unneeded(jaxpr, selections) -> frozenset:
-    """Equations of the slices whose every use is a recomputed case or another such
-    equation (latest first: uses come after)."""
-    replaced = {(i, c.position) for i, sel in selections.items() for c in sel.cases}
+    """Equations of the slices (and comparisons) whose every use is a recomputed case
+    (a predicate: recomputed on a stand-in, `_extend`) or another such equation
+    (latest first: uses come after). They are run only if read after all."""
+    replaced = {(i, p) for i, sel in selections.items()
+                for p in [c.position for c in sel.cases] + [sel.predicate]}
     uses = {}
     for j, e in enumerate(jaxpr.eqns):
         for pos, w in enumerate(e.invars):
@@ -161,7 +217,8 @@ def _unneeded(jaxpr, selections) -> frozenset:
                 uses.setdefault(w, []).append((j, pos))
     outputs = {w for w in jaxpr.outvars if isinstance(w, jcore.Var)}
     candidates = sorted({k for sel in selections.values() for c in sel.cases
-                         for k in c.slice}, reverse=True)
+                         for k in c.slice} | {sel.compare for sel in selections.values()},
+                        reverse=True)
     unneeded = set()
     for k in candidates:
         if all(w not in outputs and all(j in unneeded or (j, pos) in replaced
