@@ -212,15 +212,11 @@ def test_ift_derivatives_through_the_tape_path_match_float64():
     assert np.isfinite(float(gn["r"]))
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "extend's affine forms carry bounds through sums and constants (Affine.lo/hi, "
-    "session 25), which change max/min choices on 4 of 32 pieces; the tape's registers "
-    "keep centre, deviations and error only. Known gap: carry the bounds in the tape."))
-def test_affine_tape_evaluation_equals_the_affine_extension():
-    """`_tape.evaluate` on AF1 forms computes what `extend(f, "affine")` computes."""
+def _affine_pieces():
+    """A 12-primitive CSG program, its tape, and 4 x 8 ray pieces as AF1 forms (one
+    symbol): (prog, tape, centres, directions, coords, one region per row of pieces)."""
     from jaxiso.arith import _tape
     from jaxiso.arith._affine_type import Affine
-
     prog = csg_program(12, seed=3)
     tape = _tape.from_function(prog, 3)
     rng = np.random.default_rng(0)
@@ -229,6 +225,18 @@ def test_affine_tape_evaluation_equals_the_affine_extension():
     coords = [Affine(jnp.asarray(c[..., i]), jnp.asarray(D[..., i:i + 1]), jnp.zeros((4, 8)))
               for i in range(3)]
     tapes = _tape.take_regions(tape, jnp.zeros(4, jnp.int32))
+    return prog, tape, c, D, coords, tapes
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "extend's affine forms carry bounds through sums and constants (Affine.lo/hi, "
+    "session 25), which change max/min choices on 4 of 32 pieces; the tape's registers "
+    "keep centre, deviations and error only. Known gap: carry the bounds in the tape."))
+def test_affine_tape_evaluation_equals_the_affine_extension():
+    """`_tape.evaluate` on AF1 forms computes what `extend(f, "affine")` computes."""
+    from jaxiso.arith import _tape
+
+    prog, tape, c, D, coords, tapes = _affine_pieces()
     value, _ = jax.jit(lambda t, x: _tape.evaluate(t, x, True))(tapes, coords)
     ref = ji.extend(prog, "affine", n_symbols=1)(*coords)
     np.testing.assert_allclose(np.asarray(value.center), np.asarray(ref.center), atol=1e-6)
@@ -241,16 +249,8 @@ def test_affine_tape_evaluation_encloses_float64_and_prunes():
     min/max choices it records prune the tape to a program equal to f on the piece."""
     from jaxiso.arith import _affine as aa
     from jaxiso.arith import _tape
-    from jaxiso.arith._affine_type import Affine
 
-    prog = csg_program(12, seed=3)
-    tape = _tape.from_function(prog, 3)
-    rng = np.random.default_rng(0)
-    c = rng.uniform(-1, 1, (4, 8, 3)).astype(np.float32)
-    D = (rng.normal(size=(4, 8, 3)) * 0.05).astype(np.float32)
-    coords = [Affine(jnp.asarray(c[..., i]), jnp.asarray(D[..., i:i + 1]), jnp.zeros((4, 8)))
-              for i in range(3)]
-    tapes = _tape.take_regions(tape, jnp.zeros(4, jnp.int32))
+    prog, tape, c, D, coords, tapes = _affine_pieces()
     value, chosen = jax.jit(lambda t, x: _tape.evaluate(t, x, True))(tapes, coords)
     s = np.linspace(-1.0, 1.0, 21)
     pts = c[..., None, :].astype(np.float64) + s[:, None] * D[..., None, :]
