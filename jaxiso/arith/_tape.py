@@ -407,7 +407,7 @@ def evaluate(tape: Tape, coords, record: bool = False):
     Returns the program's value [R, P] (an array, an Interval or an Affine), and the
     choices if `record`. Pure; jit it with the tape as an argument (its `opset`/`n_vars`/
     `registers` static). The register file [registers, R, parts x P] holds every part of a
-    value side by side (points 1, intervals 2, affine forms with n symbols n + 2): its
+    value side by side (points 1, intervals 2, affine forms with n symbols n + 4): its
     size does not grow with the program's length. Every step computes the rule of each
     opcode in `opset` and selects; with affine rules that is 8-9x the interval cost on
     CPU (benchmarks/NOTES.md, Session 8), not (n + 2) / 2.
@@ -449,7 +449,9 @@ def _coordinate_kind(coords, n_vars: int, record: bool) -> type:
 class _Packing:
     """How `evaluate` holds a value in a register-file row [R, parts x width]: its parts
     ([R, width] each) side by side: a point's value, an interval's (lo, hi), an affine
-    form's (center, dev_0, ..., dev_{n_sym-1}, err)."""
+    form's (center, dev_0, ..., dev_{n_sym-1}, err, lo, hi). The form's bounds are kept:
+    without them a chain of min/max grows its forms' error by a factor each step
+    (Prospero's affine enclosures reached 1e38 where its intervals stayed within 0.4)."""
 
     kind: type
     parts: int
@@ -461,7 +463,9 @@ class _Packing:
         if self.kind is Interval:
             return Interval(p[0], p[1])
         if self.kind is Affine:
-            return Affine(p[0], jnp.stack(p[1:1 + self.n_sym], axis=-1), p[1 + self.n_sym])
+            n = self.n_sym
+            return Affine(p[0], jnp.stack(p[1:1 + n], axis=-1), p[1 + n], None, p[2 + n],
+                          p[3 + n])
         return p[0]
 
     def unpack(self, row):
@@ -479,7 +483,8 @@ class _Packing:
             dev = _select(opset, o, [c.dev for c in cases])
             return ([_select(opset, o, [c.center for c in cases])]
                     + [dev[..., k] for k in range(self.n_sym)]
-                    + [_select(opset, o, [c.err for c in cases])])
+                    + [_select(opset, o, [getattr(c, k) for c in cases])
+                       for k in ("err", "lo", "hi")])
         return [_select(opset, o, cases)]
 
 
@@ -535,13 +540,13 @@ def _flat_parts(v):
     if isinstance(v, Interval):
         return [v.lo, v.hi]
     if isinstance(v, Affine):
-        return [v.center] + [v.dev[..., k] for k in range(v.n)] + [v.err]
+        return [v.center] + [v.dev[..., k] for k in range(v.n)] + [v.err, v.lo, v.hi]
     return [v]
 
 
 def _coordinate_parts(coords, kind, R):
     """The coordinates as a list of parts, each [n_vars, R, P] float32: (x,), (lo, hi) or
-    (center, dev_0, ..., dev_{n-1}, err)."""
+    (center, dev_0, ..., dev_{n-1}, err, lo, hi)."""
     if kind is Interval:
         pieces = [(c.lo, c.hi) for c in coords]
     elif kind is Affine:
@@ -549,7 +554,8 @@ def _coordinate_parts(coords, kind, R):
         for c in coords:
             if c.n != n:
                 raise ValueError(f"affine coordinates with {c.n} and {n} noise symbols")
-        pieces = [(c.center, *[c.dev[..., k] for k in range(n)], c.err) for c in coords]
+        pieces = [(c.center, *[c.dev[..., k] for k in range(n)], c.err, c.lo, c.hi)
+                  for c in coords]
     else:
         pieces = [(c,) for c in coords]
     shape = jnp.broadcast_shapes((R, 1), *[jnp.shape(x) for p in pieces for x in p])

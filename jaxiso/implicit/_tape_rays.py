@@ -229,10 +229,13 @@ def _prune_sorted(tapes, choices):
     return _tape.map_program(out, merge, out.n.reshape(R))
 
 
-@jax.jit
-def _longest_first(tapes, reg):
+@functools.partial(jax.jit, static_argnames=("length",))
+def _longest_first(tapes, reg, length):
+    """The regions sorted by tape length, longest first, their tapes cut (or padded) to
+    `length` instructions."""
     order = jnp.argsort(-tapes.n)
-    return _tape.take_regions(tapes, order), {k: v[order] for k, v in reg.items()}
+    tapes = _tape.resize(_tape.take_regions(tapes, order), length)
+    return tapes, {k: v[order] for k, v in reg.items()}
 
 
 def _point_eval(tapes, x, y, z, rest):
@@ -563,10 +566,11 @@ def _survivors(run: _Run, tapes, children, amb, chosen, n_amb: int, level: int) 
     for start in range(0, n_amb, size):
         sub, choices, sub_reg = gather_children(tapes, children, chosen, where,
                                                  start, n_amb, size, not pruning)
+        length = sub.length
         if pruning:
             sub = _prune_sorted(sub, choices)
-            sub = _tape.resize(sub, _tape.bucket(int(jnp.max(sub.n))))
-        sub, sub_reg = _longest_first(sub, sub_reg)
+            length = _tape.bucket(int(np.max(np.asarray(sub.n))))
+        sub, sub_reg = _longest_first(sub, sub_reg, length)
         pieces.append((sub, sub_reg, min(size, n_amb - start)))
     return pieces
 
