@@ -102,6 +102,42 @@ def test_pruned_tapes_give_the_same_values_in_their_region():
     assert np.all(np.asarray(g.hi) <= np.asarray(f.hi) + 1e-6)
 
 
+def test_pruning_in_two_stages_equals_pruning_at_once():
+    """Pruning by choices a group shares, then by one region's own on the shorter tape
+    (mapped through `prune(..., origins=True)`), gives the tape one pruning gives; and
+    each pruned instruction's origin holds the same opcode and constant."""
+    prog = csg_program(40, seed=5)
+    tape = P.tape_of(prog)
+    rng = np.random.default_rng(4)
+    R = 16
+    blo, bhi = _boxes(rng, -1.1, 1.1, R, 0.04)
+    coords = [ji.Interval(jnp.asarray(blo[:, k])[:, None], jnp.asarray(bhi[:, k])[:, None])
+              for k in range(3)] + [ji.Interval(0.0, 0.0)]
+    batch = _tape.take_regions(tape, jnp.zeros(R, jnp.int32))
+    _, chosen = jax.jit(_tape.evaluate, static_argnames="record")(batch, coords, record=True)
+    own = chosen[:, :, 0]
+    once = jax.jit(_tape.prune)(batch, own)
+    # the group's shared choices: those of regions 0-7 and 8-15 that all agree
+    pairs = own.reshape(own.shape[0], 2, 8)
+    shared = jnp.where(jnp.all(pairs == pairs[..., :1], axis=-1), pairs[..., 0], 0)
+    group = _tape.take_regions(tape, jnp.zeros(2, jnp.int32))
+    first, origin = jax.jit(_tape.prune, static_argnames="origins")(group, shared, origins=True)
+    m = np.asarray(first.n)
+    for g in range(2):
+        o = np.asarray(origin)[:m[g], g]
+        assert np.all(np.diff(o) > 0)
+        np.testing.assert_array_equal(np.asarray(first.op)[:m[g], g], np.asarray(tape.op)[o])
+        np.testing.assert_array_equal(np.asarray(first.imm)[:m[g], g], np.asarray(tape.imm)[o])
+    parents = _tape.take_regions(first, jnp.arange(R) // 8)
+    mapped = jnp.take_along_axis(own, jnp.asarray(origin)[:, jnp.arange(R) // 8], axis=0)
+    twice = jax.jit(_tape.prune)(parents, mapped)
+    np.testing.assert_array_equal(np.asarray(twice.n), np.asarray(once.n))
+    for field in ("op", "a", "b", "imm"):
+        k = np.arange(once.length)[:, None] < np.asarray(once.n)[None]
+        np.testing.assert_array_equal(np.where(k, np.asarray(getattr(twice, field)), 0),
+                                      np.where(k, np.asarray(getattr(once, field)), 0))
+
+
 def test_one_compiled_evaluator_runs_any_program_of_a_bucket():
     a = P.tape_of(csg_program(10, seed=0))
     b = P.tape_of(csg_program(10, seed=1))

@@ -334,6 +334,26 @@ def test_a_budget_too_small_raises_naming_both_figures():
         ji.Plan(tape=True, memory_budget=1000)
 
 
+def test_two_stage_pruning_gives_the_same_hits(monkeypatch):
+    """Children of long tapes pruned first by their ray group's shared choices, then by
+    their own, give bitwise the hits of pruning each child against its parent's tape
+    (forced on for a 1,024-long tape; by default from 2,048) and the same tapes."""
+    from jaxiso.implicit import _tape_rays
+
+    S, rays, t_min, t_max = _budget_case()
+    runs = {}
+    for name, start in (("once", 10**9), ("twice", 0)):
+        monkeypatch.setattr(_tape_rays, "SHARED_PRUNE_FROM", start)
+        stats = {}
+        runs[name] = (S.intersect_tape(rays, t_min, t_max, stats=stats), stats)
+    (a, sa), (b, sb) = runs["once"], runs["twice"]
+    assert int(np.asarray(a.hit).sum()) > 50
+    np.testing.assert_array_equal(np.asarray(a.hit), np.asarray(b.hit))
+    np.testing.assert_array_equal(np.asarray(a.t), np.asarray(b.t))
+    np.testing.assert_array_equal(np.asarray(a.normal), np.asarray(b.normal))
+    assert sa["levels"][0]["tape_max"] == sb["levels"][0]["tape_max"]
+
+
 def test_stats_of_a_level_that_keeps_no_region():
     """A field that is positive over the whole box keeps no region at its first level;
     the stats still report that level (it raised 'need at least one array to

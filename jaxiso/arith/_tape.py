@@ -566,17 +566,19 @@ def _coordinate_parts(coords, kind, R):
 # ---------------------------------------------------------------------------- pruning
 
 
-def prune(tape: Tape, choice) -> Tape:
+def prune(tape: Tape, choice, origins: bool = False):
     """Each tape of a batch shortened for its region.
 
     Args:
       tape: [L, R] batch of tapes.
       choice: int8 [L, R] from `evaluate(..., record=True)` on the region (per region,
         one box): 1/2 where a min/max is proved to take its first/second operand.
+      origins: also return where each pruned instruction was in `tape` (static).
 
     Returns the [L, R] batch with decided min/max replaced by their operand, everything
     not reachable from the output dropped, and the rest moved to the front in order (new
-    n). On the region, the pruned tape computes the same values as the tape (same
+    n); with `origins`, (that batch, int32 [L, R]: the instruction's index in `tape`, 0
+    past n). On the region, the pruned tape computes the same values as the tape (same
     operations in the same order on the surviving path)."""
     # Three loops over instructions (`_resolve`, `_kept`, `_compact`), each touching O(R)
     # elements per step and carrying a single flat buffer (XLA updates it in place;
@@ -590,10 +592,11 @@ def prune(tape: Tape, choice) -> Tape:
     pick = jnp.where(minmax, choice, 0).astype(jnp.int32)
     resolved, top = _resolve(tape, has_a, has_b, pick, rows)
     keep = _kept(tape.n, pick, has_a, has_b, resolved, rows, top)
-    dense, new_n = _compact(tape, has_a, has_b, resolved, keep, rows, top)
+    dense, new_n = _compact(tape, has_a, has_b, resolved, keep, rows, top, origins)
     reg = _pruned_registers(dense, new_n, tape.registers)
-    return Tape(dense[0], dense[1], dense[2], lax.bitcast_convert_type(dense[3], jnp.float32),
-                new_n, tape.opset, tape.n_vars, reg, tape.registers)
+    out = Tape(dense[0], dense[1], dense[2], lax.bitcast_convert_type(dense[3], jnp.float32),
+               new_n, tape.opset, tape.n_vars, reg, tape.registers)
+    return (out, dense[4]) if origins else out
 
 
 def _resolve(tape: Tape, has_a, has_b, pick, rows):
@@ -646,12 +649,12 @@ def _kept(n, pick, has_a, has_b, resolved, rows, top):
     return (live == 1) & own & (jnp.arange(L)[:, None] < n[None, :])
 
 
-def _compact(tape: Tape, has_a, has_b, resolved, keep, rows, top):
+def _compact(tape: Tape, has_a, has_b, resolved, keep, rows, top, origins=False):
     """Pruning's compaction: kept instruction i moves to its region's next free slot with
     its operands renumbered, one scatter per instruction.
 
-    Returns (int32 [4, L, R]: op, a, b and imm's bits, padded with ``const 0``; new n
-    [R])."""
+    Returns (int32 [4, L, R]: op, a, b and imm's bits, padded with ``const 0``, and with
+    `origins` a fifth field: i; new n [R])."""
     L, R = keep.shape
     LR = L * R
     _, a2, b2 = resolved
@@ -659,12 +662,16 @@ def _compact(tape: Tape, has_a, has_b, resolved, keep, rows, top):
     pos, new_n = _new_positions(keep, top)
     new_a = jnp.where(has_a, pos[jnp.where(has_a, a2, 0) * R + rows], tape.a)
     new_b = jnp.where(has_b, pos[jnp.where(has_b, b2, 0) * R + rows], tape.b)
-    fields = jnp.stack([tape.op, new_a, new_b, imm_bits], axis=1).reshape(L, 4 * R)
+    parts = [tape.op, new_a, new_b, imm_bits]
+    if origins:
+        parts.append(jnp.broadcast_to(jnp.arange(L, dtype=jnp.int32)[:, None], (L, R)))
+    nf = len(parts)
+    fields = jnp.stack(parts, axis=1).reshape(L, nf * R)
     F = LR + R  # each field: [L + 1, R], row L for the dropped
-    offsets = jnp.repeat(jnp.arange(4, dtype=jnp.int32) * F, R)
-    rows4 = jnp.tile(rows, 4)
-    keep4 = jnp.tile(keep, (1, 4))
-    pos4 = jnp.tile(pos.reshape(L, R), (1, 4))
+    offsets = jnp.repeat(jnp.arange(nf, dtype=jnp.int32) * F, R)
+    rows4 = jnp.tile(rows, nf)
+    keep4 = jnp.tile(keep, (1, nf))
+    pos4 = jnp.tile(pos.reshape(L, R), (1, nf))
     # materialised once: XLA would otherwise sink these broadcasts into the loop body
     fields, offsets, rows4, keep4, pos4 = lax.optimization_barrier(
         (fields, offsets, rows4, keep4, pos4))
@@ -673,8 +680,8 @@ def _compact(tape: Tape, has_a, has_b, resolved, keep, rows, top):
         dest = offsets + jnp.where(keep4[i], pos4[i] * R, LR) + rows4
         return dense.at[dest].set(fields[i])
 
-    init = jnp.concatenate([jnp.full(F, CONST, jnp.int32), jnp.zeros(3 * F, jnp.int32)])
-    dense = lax.fori_loop(0, top, scatter, init).reshape(4, L + 1, R)[:, :L]
+    init = jnp.concatenate([jnp.full(F, CONST, jnp.int32), jnp.zeros((nf - 1) * F, jnp.int32)])
+    dense = lax.fori_loop(0, top, scatter, init).reshape(nf, L + 1, R)[:, :L]
     return dense, new_n
 
 
