@@ -76,16 +76,22 @@ def test_csg_program_points_intervals_and_float64():
     assert np.all(v64 >= np.asarray(r.lo) - 1e-5) and np.all(v64 <= np.asarray(r.hi) + 1e-5)
 
 
-def test_pruned_tapes_give_the_same_values_in_their_region():
-    prog = csg_program(40, seed=5)
-    tape = P.tape_of(prog)
-    rng = np.random.default_rng(3)
-    R = 32
+def _csg40_choices(seed: int, R: int):
+    """CSG-40's tape, R random small boxes (numpy lo, hi [R, 3] and Interval coords),
+    the batch of R copies of the tape, its interval values and recorded choices."""
+    tape = P.tape_of(csg_program(40, seed=5))
+    rng = np.random.default_rng(seed)
     blo, bhi = _boxes(rng, -1.1, 1.1, R, 0.04)
     coords = [ji.Interval(jnp.asarray(blo[:, k])[:, None], jnp.asarray(bhi[:, k])[:, None])
               for k in range(3)] + [ji.Interval(0.0, 0.0)]
     batch = _tape.take_regions(tape, jnp.zeros(R, jnp.int32))
     f, chosen = jax.jit(_tape.evaluate, static_argnames="record")(batch, coords, record=True)
+    return tape, rng, blo, bhi, coords, batch, f, chosen
+
+
+def test_pruned_tapes_give_the_same_values_in_their_region():
+    R = 32
+    tape, rng, blo, bhi, coords, batch, f, chosen = _csg40_choices(3, R)
     pruned = jax.jit(_tape.prune)(batch, chosen[:, :, 0])
     n = np.asarray(pruned.n)
     assert np.all(n <= int(tape.n)) and n.mean() < 0.5 * int(tape.n)
@@ -106,15 +112,8 @@ def test_pruning_in_two_stages_equals_pruning_at_once():
     """Pruning by choices a group shares, then by one region's own on the shorter tape
     (mapped through `prune(..., origins=True)`), gives the tape one pruning gives; and
     each pruned instruction's origin holds the same opcode and constant."""
-    prog = csg_program(40, seed=5)
-    tape = P.tape_of(prog)
-    rng = np.random.default_rng(4)
     R = 16
-    blo, bhi = _boxes(rng, -1.1, 1.1, R, 0.04)
-    coords = [ji.Interval(jnp.asarray(blo[:, k])[:, None], jnp.asarray(bhi[:, k])[:, None])
-              for k in range(3)] + [ji.Interval(0.0, 0.0)]
-    batch = _tape.take_regions(tape, jnp.zeros(R, jnp.int32))
-    _, chosen = jax.jit(_tape.evaluate, static_argnames="record")(batch, coords, record=True)
+    tape, _, _, _, _, batch, _, chosen = _csg40_choices(4, R)
     own = chosen[:, :, 0]
     once = jax.jit(_tape.prune)(batch, own)
     # the group's shared choices: those of regions 0-7 and 8-15 that all agree
