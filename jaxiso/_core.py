@@ -206,6 +206,12 @@ def miss_like(t) -> Hits:
 
 # -- the execution plan and the scene protocol ---------------------------------------
 
+# The tape path's working-set budget, bytes (`Plan.memory_budget`). 512 MiB lowers the slab's
+# peak at 1024^2 from 3.06 to 2.37 GB at the same call time, but its batches leave more
+# distinct shapes to compile: first call at 256^2 50 -> 83 s (benchmarks/NOTES.md, session 26).
+DEFAULT_MEMORY_BUDGET = 2**30
+
+
 @dataclasses.dataclass(frozen=True)
 class Plan:
     """How a batch of rays runs (static: a new plan compiles anew).
@@ -222,13 +228,13 @@ class Plan:
         `jax.pure_callback` (tested on CPU).
       memory_budget: bytes the tape path's working set may take (its regions run in
         batches sized from it; a program whose single region does not fit raises
-        MemoryError naming both figures). Default 1 GiB.
+        MemoryError naming both figures). Default 1 GiB (`DEFAULT_MEMORY_BUDGET`).
     """
 
     tile: int = 8
     lanes: int | None = None
     tape: bool = False
-    memory_budget: int = 2**30
+    memory_budget: int = DEFAULT_MEMORY_BUDGET
 
     def __post_init__(self):
         if isinstance(self.tile, bool) or not isinstance(self.tile, (int, np.integer)) \
@@ -258,7 +264,7 @@ class Plan:
 
     def __repr__(self) -> str:
         tape = ", tape=True" if self.tape else ""
-        if self.memory_budget != 2**30:
+        if self.memory_budget != DEFAULT_MEMORY_BUDGET:
             tape += f", memory_budget={self.memory_budget}"
         return f"Plan(tile={self.tile}, lanes={self.lanes}{tape})"
 

@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._core import Hits, Rays, unit_or_facing
+from .._core import DEFAULT_MEMORY_BUDGET, Hits, Rays, unit_or_facing
 from ..arith import _affine as aa
 from ..arith import _tape
 from ..arith._affine_type import Affine
@@ -60,8 +60,7 @@ ROOT_SLABS = 16
 # Roots are groups of at most ROOT_GROUPS x ROOT_GROUP rays (16,384), so that a root's
 # children stay a bounded batch however many rays there are.
 ROOT_GROUPS = 64
-# The default memory budget of the tape path's working set, bytes (`Plan.memory_budget`).
-DEFAULT_BUDGET = 2**30
+DEFAULT_BUDGET = DEFAULT_MEMORY_BUDGET
 # Tapes padded to at most this many instructions are no longer pruned: on short tapes a
 # pruning pass costs more than the instructions it saves (CSG-60 at 96^2: 0.07 s per
 # level pruning ~20-instruction tapes padded to 128, more than their evaluation saved).
@@ -203,9 +202,12 @@ def _behind_first_roots(tapes, amb, first, idx, pr, Dr, s0, s1, rest, iso):
     without those pieces and first ([rays]: the end of each ray's nearest proven piece)
     updated."""
     ray = idx[..., 0]
-    pa, pb = (pr[..., 0, :] + s[..., None] * Dr[..., 0, :] for s in (s0, s1))
-    fa = _point_eval(tapes, pa[..., 0], pa[..., 1], pa[..., 2], rest)
-    fb = _point_eval(tapes, pb[..., 0], pb[..., 1], pb[..., 2], rest)
+    R, C = s0.shape
+    # both ends in one evaluation ([R, 2 C] points): one evaluator loop, compiled once
+    ends = pr[..., 0, None, :] + jnp.stack([s0, s1], -1)[..., None] * Dr[..., 0, None, :]
+    ends = ends.reshape(R, 2 * C, 3)
+    f = _point_eval(tapes, ends[..., 0], ends[..., 1], ends[..., 2], rest).reshape(R, C, 2)
+    fa, fb = f[..., 0], f[..., 1]
     proven = amb & jnp.any((fa[..., None] - iso) * (fb[..., None] - iso) <= 0, axis=-1)
     n_rays = first.shape[0]
     first = first.at[jnp.where(proven, ray, n_rays)].min(s1, mode="drop")
