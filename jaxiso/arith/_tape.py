@@ -566,7 +566,7 @@ def _coordinate_parts(coords, kind, R):
 # ---------------------------------------------------------------------------- pruning
 
 
-def prune(tape: Tape, choice, origins: bool = False):
+def prune(tape: Tape, choice, origins: bool = False, registers: bool = True):
     """Each tape of a batch shortened for its region.
 
     Args:
@@ -574,6 +574,8 @@ def prune(tape: Tape, choice, origins: bool = False):
       choice: int8 [L, R] from `evaluate(..., record=True)` on the region (per region,
         one box): 1/2 where a min/max is proved to take its first/second operand.
       origins: also return where each pruned instruction was in `tape` (static).
+      registers: assign the pruned tapes' registers (static; False: ``reg`` None, for
+        tapes that will be pruned again, whose pruning assigns them).
 
     Returns the [L, R] batch with decided min/max replaced by their operand, everything
     not reachable from the output dropped, and the rest moved to the front in order (new
@@ -593,7 +595,7 @@ def prune(tape: Tape, choice, origins: bool = False):
     resolved, top = _resolve(tape, has_a, has_b, pick, rows)
     keep = _kept(tape.n, pick, has_a, has_b, resolved, rows, top)
     dense, new_n = _compact(tape, has_a, has_b, resolved, keep, rows, top, origins)
-    reg = _pruned_registers(dense, new_n, tape.registers)
+    reg = _pruned_registers(dense, new_n, tape.registers) if registers else None
     out = Tape(dense[0], dense[1], dense[2], lax.bitcast_convert_type(dense[3], jnp.float32),
                new_n, tape.opset, tape.n_vars, reg, tape.registers)
     return (out, dense[4]) if origins else out

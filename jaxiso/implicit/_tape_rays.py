@@ -565,15 +565,17 @@ def _survivors(run: _Run, tapes, children, amb, chosen, n_amb: int, level: int,
     ray group's slabs share) and sorted longest first."""
     pruning = run.prune and tapes.length > PRUNE_ABOVE
     _check_fits(tapes.length, run.budget, level)
+    origin = None
     if pruning and tapes.length >= SHARED_PRUNE_FROM and h > 2:
-        tapes, chosen = _shared_prune(tapes, amb, chosen, h, run.budget)
+        tapes, origin = _shared_prune(tapes, amb, chosen, h, run.budget)
     part = survivor_limit(tapes.length, run.budget)
     size = min(part, _tape.bucket(n_amb, 8, fine=True))
     where = ambiguous_positions(amb, _tape.bucket(n_amb, 8, fine=True))
     pieces = []
     for start in range(0, n_amb, size):
-        sub, choices, sub_reg = gather_children(tapes, children, chosen, where,
-                                                 start, n_amb, size, not pruning)
+        sub, choices, sub_reg = gather_children(tapes, children, chosen, where, start,
+                                                 n_amb, size, not pruning, origin,
+                                                 1 if origin is None else h)
         length = sub.length
         if pruning:
             sub = _prune_sorted(sub, choices)
@@ -595,8 +597,9 @@ def _shared_prune(tapes, amb, chosen, h: int, budget: int):
     slabs share most choices (Prospero's slab: all, it does not read z), so each slab is
     then pruned on a much shorter tape (slab 256^2: the root's children were pruned
     against 7,871 instructions, 1.75 s of a 6.3 s call). amb [R, C], chosen [L, R, C]
-    (C = q h, group-major). Returns the groups' tapes [L', R q] and the children's
-    choices on them [L', R q, h] (children stay numbered r C + c)."""
+    (C = q h, group-major). Returns the groups' tapes [L', R q] (no registers: they are
+    pruned again) and the origins of their instructions [L', R q] (`gather_children`
+    reads each child's choices there)."""
     L, R, C = chosen.shape
     groups = R * (C // h)
     consensus, busy = _consensus(amb, chosen, h)
@@ -604,7 +607,7 @@ def _shared_prune(tapes, amb, chosen, h: int, budget: int):
     parts = [_group_prune(tapes, consensus, busy, start, part, C // h)
              for start in range(0, groups, part)]
     length = _tape.bucket(max(int(np.max(np.asarray(t.n))) for t, _ in parts))
-    return _joined_groups(parts, chosen, length, groups, h)
+    return _joined_groups(parts, length, groups)
 
 
 @functools.partial(jax.jit, static_argnames=("h",))
@@ -625,25 +628,22 @@ def _consensus(amb, chosen, h):
 @functools.partial(jax.jit, static_argnames=("size", "q"))
 def _group_prune(tapes, consensus, busy, start, size, q):
     """Groups start .. start + size - 1 (past the last: the last again): their parent's
-    tape pruned by their shared choices (idle groups to one instruction), and the
-    origins of the pruned instructions."""
+    tape pruned by their shared choices (idle groups to one instruction), without
+    registers, and the origins of the pruned instructions."""
     idx = jnp.minimum(start + jnp.arange(size), consensus.shape[1] - 1)
     sub = _tape.take_regions(dataclasses.replace(tapes, reg=None), idx // q)
     sub = dataclasses.replace(sub, n=jnp.where(busy[idx], sub.n, 1))
-    return _tape.prune(sub, consensus[:, idx], origins=True)
+    return _tape.prune(sub, consensus[:, idx], origins=True, registers=False)
 
 
-@functools.partial(jax.jit, static_argnames=("length", "groups", "h"))
-def _joined_groups(parts, chosen, length, groups, h):
-    """The groups' pruned tapes cut to `length` and joined ([length, groups]), and each
-    child's choices at the pruned instructions' origins ([length, groups, h])."""
+@functools.partial(jax.jit, static_argnames=("length", "groups"))
+def _joined_groups(parts, length, groups):
+    """The groups' pruned tapes and their origins cut to `length` and joined
+    ([length, groups] each)."""
     tapes = [_tape.resize(t, length) for t, _ in parts]
     tapes = jax.tree_util.tree_map(lambda *x: jnp.concatenate(x, axis=-1)[..., :groups],
                                    *tapes)
-    origin = jnp.concatenate([o[:length] for _, o in parts], axis=-1)[:, :groups]
-    c = chosen.reshape(chosen.shape[0], groups, h)
-    at = jnp.broadcast_to(origin[..., None], (length, groups, h))
-    return tapes, jnp.take_along_axis(c, at, axis=0)
+    return tapes, jnp.concatenate([o[:length] for _, o in parts], axis=-1)[:, :groups]
 
 
 def _count_level(per_level: dict, level: int, rays_per_region: int, n_valid: int,

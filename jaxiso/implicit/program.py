@@ -393,12 +393,16 @@ def _shortest_bucket(tapes):
     return _resized(tapes, _tape.bucket(int(np.max(np.asarray(tapes.n)))))
 
 
-@functools.partial(jax.jit, static_argnames=("size", "registers"))
-def gather_children(tapes, children, chosen, where, start, count, size, registers=True):
+@functools.partial(jax.jit, static_argnames=("size", "registers", "h"))
+def gather_children(tapes, children, chosen, where, start, count, size, registers=True,
+                    origin=None, h=1):
     """Children where[start:start + size] (those past `count` invalid): their regions,
     their parents' tapes and their own min/max choices ([L, size]). `registers=False`
     leaves the tapes' registers behind (for tapes about to be pruned, which allocates
-    them anew: 3 of the 7 arrays a gather would move)."""
+    them anew: 3 of the 7 arrays a gather would move). With `origin` ([L', groups]),
+    `tapes` are the children's groups' ([L', groups]: a group is h consecutive children
+    of a parent, its tape pruned by their shared choices, `prune(..., origins=True)`)
+    and the choices are read at each group instruction's origin ([L', size])."""
     if not registers:
         tapes = dataclasses.replace(tapes, reg=None)
     C = chosen.shape[2]
@@ -408,9 +412,13 @@ def gather_children(tapes, children, chosen, where, start, count, size, register
     r, c = idx // C, idx % C
     reg = {key: v.reshape(-1)[idx] for key, v in children.items()}
     reg["valid"] = ok
-    parent = _tape.take_regions(tapes, r)
+    if origin is None:
+        parent, choices = _tape.take_regions(tapes, r), chosen[:, r, c]
+    else:
+        g = r * (C // h) + c // h
+        parent, choices = _tape.take_regions(tapes, g), chosen[origin[:, g], r, c]
     parent = dataclasses.replace(parent, n=jnp.where(ok, parent.n, 1))
-    return parent, chosen[:, r, c], reg
+    return parent, choices, reg
 
 
 # A separate call: fused with the gathers above, XLA laid the tapes out so that the
