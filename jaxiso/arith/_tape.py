@@ -36,8 +36,8 @@ from ._affine_type import padded_range as _range
 from ._interval import Interval
 
 __all__ = ["OPS", "Tape", "assemble", "from_function", "evaluate", "prune", "allocate",
-           "bucket", "take_regions", "resize", "with_opset", "with_registers", "map_program",
-           "register_bucket"]
+           "bucket", "longest_bucket", "take_regions", "resize", "with_opset",
+           "with_registers", "map_program", "register_bucket"]
 
 OPS = ("const", "var", "neg", "abs", "square", "sqrt", "exp", "log", "sin", "cos", "ipow",
        "add", "sub", "mul", "div", "min", "max")
@@ -122,6 +122,11 @@ def assemble(ops, n_vars: int, length: int | None = None) -> Tape:
     return Tape(jnp.asarray(op), jnp.asarray(a), jnp.asarray(b), jnp.asarray(imm),
                 jnp.asarray(n, jnp.int32), opset, n_vars,
                 jnp.asarray(np.pad(reg, [(0, L - n), (0, 0)])), register_bucket(used))
+
+
+def longest_bucket(tape: Tape) -> int:
+    """The bucketed length of a (concrete) batch's longest tape, read on the host."""
+    return bucket(int(np.max(np.asarray(tape.n))))
 
 
 def register_bucket(used: int) -> int:

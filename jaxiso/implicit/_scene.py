@@ -14,7 +14,15 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 
-from .._core import Hits, Plan, check_choice, isovalues_array, pytree_dataclass, static_field
+from .._core import (
+    DEFAULT_MEMORY_BUDGET,
+    Hits,
+    Plan,
+    check_choice,
+    isovalues_array,
+    pytree_dataclass,
+    static_field,
+)
 from ..arith import ARITHMETICS
 from ._culling import GRID_INPUTS, near_possible_cells
 from ._field import as_field, on_points, ray_segments
@@ -25,7 +33,6 @@ from ._options import CULLINGS, DEFAULT_EPS, ImplicitOptions
 from ._policy import TAPE_TILE, is_heavy, packet_plan
 from ._prepare import FunctionFacts, params_structure, prepare_surface
 from ._tape_path import intersect_tape
-from ._tape_rays import DEFAULT_BUDGET
 from .program import long_program_tape, tape_of
 
 __all__ = ["ImplicitSurface", "METHODS", "ARITHMETICS"]
@@ -182,7 +189,7 @@ class ImplicitSurface(ImplicitOptions):
         return packet_plan(method.lanes, arithmetic, n_rays, backend, heavy)
 
     def intersect_tape(self, rays, t_min, t_max, stats: dict | None = None,
-                       prune: bool = True, budget: int = DEFAULT_BUDGET) -> Hits:
+                       prune: bool = True, budget: int = DEFAULT_MEMORY_BUDGET) -> Hits:
         """First hits of rays [N] on the tape path (`Plan.tape`). The traversal runs on
         the host with concrete values: eagerly (also under eager `jax.grad` / `jvp`, on
         the primal values), or under jit / vmap in a `jax.pure_callback`. Differentiated,

@@ -12,15 +12,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._core import Hits, on_host
+from .._core import DEFAULT_MEMORY_BUDGET, Hits, on_host
 from ._hits import finish_hits
-from ._tape_rays import DEFAULT_BUDGET, intersect_rays
+from ._tape_rays import intersect_rays
 
 __all__ = ["intersect_tape"]
 
 
 def intersect_tape(scene, tape, rays, t_min, t_max, stats=None, prune=True,
-                   budget=DEFAULT_BUDGET) -> Hits:
+                   budget=DEFAULT_MEMORY_BUDGET) -> Hits:
     """First hits [N] of rays [N] of `scene` on its program's `tape` (see
     `ImplicitSurface.intersect_tape`)."""
     primal = jax.lax.stop_gradient((scene, rays, t_min, t_max))

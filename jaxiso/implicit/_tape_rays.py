@@ -48,7 +48,7 @@ from ._bisect import depth_for, piece_width
 from ._field import CLOSER_PARTS, changes_sign, ray_boxes, ray_segments, touches
 from .program import ambiguous_positions, chunked_eval, gather_children, histogram
 
-__all__ = ["intersect_rays", "ROOT_GROUP", "ROOT_SLABS", "ROOT_GROUPS", "DEFAULT_BUDGET",
+__all__ = ["intersect_rays", "ROOT_GROUP", "ROOT_SLABS", "ROOT_GROUPS",
            "batch_limit"]
 
 # The root is one region (all rays, the full tape); its children are groups of
@@ -60,7 +60,6 @@ ROOT_SLABS = 16
 # Roots are groups of at most ROOT_GROUPS x ROOT_GROUP rays (16,384), so that a root's
 # children stay a bounded batch however many rays there are.
 ROOT_GROUPS = 64
-DEFAULT_BUDGET = DEFAULT_MEMORY_BUDGET
 # Tapes padded to at most this many instructions are no longer pruned: on short tapes a
 # pruning pass costs more than the instructions it saves (CSG-60 at 96^2: 0.07 s per
 # level pruning ~20-instruction tapes padded to 128, more than their evaluation saved).
@@ -414,7 +413,7 @@ def _merge(best, value, gradient, found, n_rays):
 
 
 def intersect_rays(scene, tape: Tape, rays: Rays, t_min, t_max, stats: dict | None = None,
-                   prune: bool = True, budget: int = DEFAULT_BUDGET) -> Hits:
+                   prune: bool = True, budget: int = DEFAULT_MEMORY_BUDGET) -> Hits:
     """First hits of rays [N] (concrete arrays) on the level sets of `scene` (an
     `ImplicitSurface` whose field is `tape`).
 
@@ -579,7 +578,7 @@ def _survivors(run: _Run, tapes, children, amb, chosen, n_amb: int, level: int,
         length = sub.length
         if pruning:
             sub = _prune_sorted(sub, choices)
-            length = _tape.bucket(int(np.max(np.asarray(sub.n))))
+            length = _tape.longest_bucket(sub)
         sub, sub_reg = _longest_first(sub, sub_reg, length)
         pieces.append((sub, sub_reg, min(size, n_amb - start)))
     return pieces
@@ -606,7 +605,7 @@ def _shared_prune(tapes, amb, chosen, h: int, budget: int):
     part = min(survivor_limit(L, budget), _tape.bucket(groups, 1))
     parts = [_group_prune(tapes, consensus, busy, start, part, C // h)
              for start in range(0, groups, part)]
-    length = _tape.bucket(max(int(np.max(np.asarray(t.n))) for t, _ in parts))
+    length = max(_tape.longest_bucket(t) for t, _ in parts)
     return _joined_groups(parts, length, groups)
 
 

@@ -390,7 +390,7 @@ def _resized(tapes, length):
 def _shortest_bucket(tapes):
     """`tapes` cut to the bucketed length of their longest (concrete n), in one compiled
     call (eager slicing compiled each array's slice apart)."""
-    return _resized(tapes, _tape.bucket(int(np.max(np.asarray(tapes.n)))))
+    return _resized(tapes, _tape.longest_bucket(tapes))
 
 
 @functools.partial(jax.jit, static_argnames=("size", "registers", "h"))
