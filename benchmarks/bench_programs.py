@@ -8,26 +8,20 @@ fatal):
              and peak RSS of (a) the straight path, ``jax.jit(ji.extend(f, "interval"))``
              on 4,096 boxes, and (b) the tape path, `program.evaluate_intervals` (one
              compiled evaluator per padded length).
-  prospero   Prospero as an extruded 2D implicit (orthographic camera down z) at 512^2 and
-             1024^2 with `program.cast`: first call (compile + run), median run after,
-             pruned tape lengths per level, agreement with float64 evaluation at pixel
-             centres; and JAX brute-force dense evaluation (jitted point evaluation of the
-             program on every pixel centre) in its own subprocess.
-  noprune    Prospero 512^2 with pruning off (every region runs the full tape).
-  csg3d      a generated CSG of 400 primitives at 256^2 in perspective with
-             `program.cast` (the solid): compile, run, hit-mask agreement with float64
-             dense sampling on 1,500 random pixels.
   slab       Prospero as a 3D slab of text (max(prospero, |z| - 0.25)) through the default
              call, rays down z, 256^2 and 1024^2, next to dense evaluation of prospero at
              the pixel centres: first call, median call, peak RSS, agreement, registers.
+             (Earlier rounds also cast Prospero as an extruded 2D solid with a separate
+             renderer, `program.cast`; issue 27 removed it: one engine, the default call.)
   memory     peak RSS of the default call on generated CSG scenes against program length
              (50-800 primitives at 128^2) and image size (64^2-256^2).
-  scene3d    the same model through the user's default call, ``ji.render(
+  scene3d    a generated CSG of 400 primitives at 256^2 in perspective through the
+             user's default call, ``ji.render(
              ji.ImplicitSurface(prog, lo, hi), cam)`` (the scene plans the tape path):
              first call, median render, median intersect, agreement, per-level tapes.
 Charts: <out>_compile.png (compile time against program length).
 
-Usage: python benchmarks/bench_programs.py [--sections crossover,prospero,slab,memory,...]
+Usage: python benchmarks/bench_programs.py [--sections crossover,slab,memory,scene3d]
        [--quick] [--out benchmarks/results/programs_cpu.json]
 Only public jaxiso names are used.
 """
@@ -119,35 +113,6 @@ def _prospero_camera(n):
     return ji.Camera.orthographic_view((0, 0, 3), (0, 0, 0), (0, 1, 0), 1.0, n, n)
 
 
-def case_prospero(n, prune=True, repeats=3):
-    import numpy as np
-    from reference_program64 import vm64
-
-    import jaxiso as ji
-    from jaxiso.implicit import program
-    prog = ji.implicit.load_vm(PROSPERO)
-    cam = _prospero_camera(n)
-    t0 = time.perf_counter()
-    res = program.cast(prog, (-1, -1, -1), (1, 1, 1), cam, prune=prune)
-    first_s = time.perf_counter() - t0
-    runs = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        res = program.cast(prog, (-1, -1, -1), (1, 1, 1), cam, prune=prune)
-        runs.append(time.perf_counter() - t0)
-    o = np.asarray(cam.rays().origin, np.float64)
-    ref = vm64(prog.ops, o[..., 0], o[..., 1], o[..., 2]) < 0
-    hit = np.asarray(res.hit)
-    levels = [{k: lv[k] for k in ("tile", "regions", "full", "ambiguous", "tape_bucket",
-                                  "tape_mean", "tape_max", "tape_hist", "seconds")}
-              for lv in res.stats["levels"]]
-    run_s = statistics.median(runs)
-    return dict(size=n, prune=prune, first_call_s=first_s, run_s=run_s,
-                compile_s_est=max(first_s - run_s, 0.0), agreement=float(np.mean(hit == ref)),
-                inside_fraction=float(ref.mean()), levels=levels,
-                final=res.stats["final"], peak_rss_mb=_rss_mb())
-
-
 def case_dense(n):
     """JAX brute force: the program inlined and jitted, evaluated at every pixel centre."""
     import jax
@@ -186,35 +151,6 @@ def _sampled_reference(prog, rays, result, lo, hi, size):
                                     np.asarray(rays.direction).reshape(-1, 3)[pick], lo, hi)
     return (np.asarray(result.hit).reshape(-1)[pick], np.asarray(result.t).reshape(-1)[pick],
             ref_hit, ref_t)
-
-
-def case_csg3d(n_prims=400, size=256, seed=1):
-    import numpy as np
-
-    import jaxiso as ji
-    from jaxiso.implicit import program
-    from jaxiso.implicit.generate import csg_program
-    prog = csg_program(n_prims, seed)
-    cam = ji.Camera.look_at((3.0, 2.2, 1.8), (0, 0, 0), fov=45.0, width=size, height=size)
-    lo, hi = (-1.4,) * 3, (1.4,) * 3
-    t0 = time.perf_counter()
-    res = program.cast(prog, lo, hi, cam)
-    first_s = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    res = program.cast(prog, lo, hi, cam)
-    run_s = time.perf_counter() - t0
-    rays = cam.rays()
-    hit, t, ref_hit, ref_t = _sampled_reference(prog, rays, res, lo, hi, size)
-    both = hit & ref_hit
-    levels = [{k: lv[k] for k in ("tile", "regions", "full", "ambiguous", "tape_bucket",
-                                  "tape_mean", "tape_max", "tape_hist", "seconds")}
-              for lv in res.stats["levels"]]
-    return dict(primitives=n_prims, instructions=len(prog), size=size, first_call_s=first_s,
-                run_s=run_s, compile_s_est=max(first_s - run_s, 0.0),
-                hit_agreement=float(np.mean(hit == ref_hit)),
-                hit_fraction=float(ref_hit.mean()),
-                t_error_median=float(np.median(np.abs(t[both] - ref_t[both]))),
-                levels=levels, final=res.stats["final"], peak_rss_mb=_rss_mb())
 
 
 def case_scene3d(n_prims=400, size=256, seed=1, repeats=3, noprune=False):
@@ -335,8 +271,8 @@ def case_memory(n_prims, size, seed=1):
                 run_s=time.perf_counter() - t0, peak_rss_mb=_rss_mb())
 
 
-CASES = dict(straight=case_straight, tape=case_tape, prospero=case_prospero,
-             dense=case_dense, csg3d=case_csg3d, scene3d=case_scene3d, slab=case_slab,
+CASES = dict(straight=case_straight, tape=case_tape,
+             dense=case_dense, scene3d=case_scene3d, slab=case_slab,
              memory=case_memory)
 
 
@@ -366,7 +302,7 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--case")
     ap.add_argument("--case-args", default="[]")
-    ap.add_argument("--sections", default="crossover,prospero,noprune,csg3d,scene3d")
+    ap.add_argument("--sections", default="crossover,slab,memory,scene3d")
     ap.add_argument("--quick", action="store_true", help="smaller sizes (smoke run)")
     ap.add_argument("--timeout", type=int, default=600)
     ap.add_argument("--mem-mb", type=int, default=8000)
@@ -398,10 +334,6 @@ def main():
         for n in prims:
             record("crossover", run_case("tape", [n], a.timeout, a.mem_mb))
             record("crossover", run_case("straight", [n], a.timeout, a.mem_mb))
-    if "prospero" in sections and PROSPERO.exists():
-        for n in ([512, 1024] if not a.quick else [128]):
-            record("prospero", run_case("prospero", [n], a.timeout, a.mem_mb))
-            record("prospero", run_case("dense", [n], a.timeout, a.mem_mb))
     if "slab" in sections and PROSPERO.exists():
         for n in ([256, 1024] if not a.quick else [64]):
             record("slab", run_case("slab", [n, 2 if n <= 256 else 1], a.timeout, a.mem_mb))
@@ -410,12 +342,6 @@ def main():
         for args in ([[50, 128], [200, 128], [800, 128], [200, 64], [200, 256]]
                      if not a.quick else [[60, 32], [120, 32]]):  # tape-path sizes
             record("memory", run_case("memory", args, a.timeout, a.mem_mb))
-    if "noprune" in sections and PROSPERO.exists():
-        n = 512 if not a.quick else 128
-        record("noprune", run_case("prospero", [n, False, 1], a.timeout, a.mem_mb))
-    if "csg3d" in sections:
-        args = [400, 256] if not a.quick else [30, 32]
-        record("csg3d", run_case("csg3d", args, a.timeout, a.mem_mb))
     if "scene3d" in sections:
         args = [400, 256] if not a.quick else [60, 32]
         record("scene3d", run_case("scene3d", args, a.timeout, a.mem_mb))
