@@ -2,7 +2,8 @@
 the seed's Tables 6.1 and 6.2, a packet-size table (seed Table 4.2) and an eps sweep.
 
     python benchmarks/bench_implicit.py [--size 512] [--quick] [--repeats 3]
-        [--only table61,table62,packets,sweep] [--names sphere,...] [--out benchmarks/results]
+        [--only table61,table62,packets,sweep,scalar] [--names sphere,...]
+        [--out benchmarks/results]
 
 Every entry runs ``ji.intersect(scene, rays, plan=plan)`` (the render path: rays in tile
 order, hits with normals) on a catalogue camera, with the options (eps, method,
@@ -34,6 +35,18 @@ Sections:
            affine and Mitchell; point sampling with 16/64/256 samples. Pixel error
            (fraction of hit masks differing from the reference) and depth error
            (median / 99th percentile of |t - t_ref| where both hit) against Mrays/s.
+  scalar   Barth sextic, eps 2^-11, --size: the default call ``ji.intersect(scene,
+           camera.rays())`` (no plan, no manual jit: first call, then the median of
+           `repeats` calls, never cut short by --slow-s) beside a plain scalar C loop in the
+           same process (benchmarks/scalar_bisect.c: the seed's stackless t-bisection one
+           ray at a time, float32 interval arithmetic rounded to nearest, hit at the
+           piece's midpoint), compiled at run time with ``cc -O2 -march=native -fopenmp``
+           (fallbacks without -march=native / with pthreads; no compiler: a skip with the
+           reason) and run on os.cpu_count() threads and on 1; its enclosures are checked
+           against ``ji.extend`` on random boxes. Hit-mask agreement C vs jaxiso and each
+           vs the float64 reference, median |t_C - t_jaxiso| where both hit; verdict:
+           jaxiso Mrays/s / C (all threads) Mrays/s. If packets ran first, the default
+           call's executable is cached (first_call_s is then a run, not a compile).
 The target (>= 1 Mray/s on the Barth sextic at eps 2^-11, best configuration measured)
 is checked at the end. Writes ``<out>/implicit_<backend>.json`` and, when matplotlib is
 installed, ``<out>/implicit_<backend>_{sweep,packets,table61}.png``.
@@ -42,12 +55,18 @@ installed, ``<out>/implicit_<backend>_{sweep,packets,table61}.png``.
 from __future__ import annotations
 
 import argparse
+import ctypes
 import json
 import math
+import os
 import pathlib
+import shutil
+import subprocess
 import sys
+import tempfile
 import time
 import traceback
+import types
 
 import jax
 import jax.numpy as jnp
@@ -63,7 +82,7 @@ import reference64  # noqa: E402
 import reference_trace64  # noqa: E402
 from _common import compile_cell, fmt, print_table  # noqa: E402
 
-SECTIONS = ("table61", "table62", "packets", "sweep")
+SECTIONS = ("table61", "table62", "packets", "sweep", "scalar")
 ARITHMETICS = ("interval", "affine")
 EPS_DEFAULT = 2.0**-11
 CONVERGED_EPS = tuple(2.0**-k for k in range(6, 15))  # 2^-6 .. 2^-14, coarse to fine
@@ -463,6 +482,249 @@ def sweep(b, cfg):
                 sampling_eps=EPS_DEFAULT, rows=rows)
 
 
+# the scalar C loop (benchmarks/scalar_bisect.c) and the flags tried to build it, best first
+SCALAR_C = ROOT / "scalar_bisect.c"
+SCALAR_FLAGS = (("-march=native", "-fopenmp"), ("-fopenmp",), ("-march=native", "-pthread"),
+                ("-pthread",))
+SCALAR_CHECK_BOXES = 4096
+
+
+def build_scalar(tmp):
+    """Compiles scalar_bisect.c into the folder tmp and loads it: (ctypes library, the
+    command used, compile s, None) or (None, None, None, the reason it could not).
+    ``cc -O2 <flags> -shared -fPIC -std=c99`` with the flags of SCALAR_FLAGS in turn
+    ($CC, else cc, gcc or clang); -std=c99 keeps GCC from contracting a*b+c into FMAs."""
+    cc = next((c for c in (os.environ.get("CC"), "cc", "gcc", "clang")
+               if c and shutil.which(c)), None)
+    if cc is None:
+        return None, None, None, "no C compiler ($CC, cc, gcc or clang) on PATH"
+    errors = []
+    for i, flags in enumerate(SCALAR_FLAGS):
+        out = pathlib.Path(tmp) / f"scalar_bisect_{i}.so"
+        cmd = [cc, "-O2", *flags, "-shared", "-fPIC", "-std=c99", str(SCALAR_C), "-o",
+               str(out), "-lm"]
+        t0 = time.perf_counter()
+        try:
+            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+        except (OSError, subprocess.TimeoutExpired) as e:
+            errors.append(f"{' '.join(cmd)}: {type(e).__name__}: {e}")
+            continue
+        compile_s = time.perf_counter() - t0
+        if proc.returncode != 0:
+            errors.append(f"{' '.join(flags)}: {proc.stderr.strip()[-300:]}")
+            continue
+        try:
+            lib = ctypes.CDLL(str(out))
+        except OSError as e:
+            errors.append(f"{' '.join(flags)}: load failed: {e}")
+            continue
+        f32, i32 = ctypes.POINTER(ctypes.c_float), ctypes.POINTER(ctypes.c_int)
+        head = [ctypes.c_int, f32, f32, ctypes.c_float, f32, f32, ctypes.c_int, f32, i32,
+                ctypes.c_int]
+        lib.trace.argtypes = head
+        lib.trace.restype = ctypes.c_int
+        lib.trace_steps.argtypes = head + [i32]
+        lib.trace_steps.restype = ctypes.c_int
+        lib.enclose.argtypes = [ctypes.c_int, f32, f32, f32, f32]
+        lib.enclose.restype = None
+        lib.parallel_backend.restype = ctypes.c_int
+        return lib, " ".join(cmd), compile_s, None
+    return None, None, None, "every compile failed: " + " | ".join(errors)
+
+
+def _ptr(a, kind=ctypes.c_float):
+    return a.ctypes.data_as(ctypes.POINTER(kind))
+
+
+def scalar_trace(lib, o, d, eps, lo, hi, max_steps, threads, steps=False):
+    """Runs the C loop on rays o, d [n, 3] float32: (hit [n] bool, t [n] float64 (inf: no
+    hit), steps [n] int or None)."""
+    n = o.shape[0]
+    t = np.empty(n, np.float32)
+    hit = np.empty(n, np.int32)
+    args = [n, _ptr(o), _ptr(d), eps, _ptr(lo), _ptr(hi), max_steps, _ptr(t),
+            _ptr(hit, ctypes.c_int), threads]
+    if steps:
+        st = np.empty(n, np.int32)
+        rc = lib.trace_steps(*args, _ptr(st, ctypes.c_int))
+    else:
+        st = None
+        rc = lib.trace(*args)
+    if rc < 0:
+        raise ValueError(f"scalar_bisect.c trace rejected its arguments ({rc})")
+    return hit.astype(bool), t.astype(np.float64), st
+
+
+def scalar_enclosures_match(lib, name, n_boxes=SCALAR_CHECK_BOXES):
+    """The C interval extension against ``ji.extend(f, "interval", "fast")`` on random
+    boxes in and around the domain (widths from 0 to 1): the share of boxes whose two
+    enclosures are bitwise equal, and the largest endpoint difference relative to the
+    enclosure's width."""
+    e = ji.surfaces.get(name)
+    rng = np.random.default_rng(0)
+    lo = rng.uniform(np.array(e.lo) - 0.1, np.array(e.hi) + 0.1, (n_boxes, 3))
+    hi = lo + rng.uniform(0.0, 1.0, (n_boxes, 3)) ** 4
+    lo, hi = (np.ascontiguousarray(a, np.float32) for a in (lo, hi))
+    c_lo, c_hi = np.empty(n_boxes, np.float32), np.empty(n_boxes, np.float32)
+    lib.enclose(n_boxes, _ptr(lo), _ptr(hi), _ptr(c_lo), _ptr(c_hi))
+    F = ji.extend(e.f, "interval", "fast")
+    r = F(*(ji.interval(jnp.asarray(lo[:, i]), jnp.asarray(hi[:, i])) for i in range(3)),
+          e.w)
+    j_lo, j_hi = np.asarray(r.lo), np.asarray(r.hi)
+    diff = np.maximum(np.abs(j_lo - c_lo), np.abs(j_hi - c_hi)).astype(np.float64)
+    width = np.maximum(np.abs(j_hi - j_lo).astype(np.float64), 1e-30)
+    return dict(boxes=n_boxes, bitwise_equal=float(np.mean((j_lo == c_lo) & (j_hi == c_hi))),
+                max_rel_diff=float(np.max(diff / width)))
+
+
+def scalar_seed_rule_check(scene, rays, n, c_hit, c_t, c_steps):
+    """One untimed call of jaxiso with the seed's hit rule (``verify="none"``: the
+    enclosure alone, as the C loop) on the same rays: how closely the C loop reproduces
+    it (hit masks, t, steps per ray). The default call differs from the C loop by its
+    hit verification only."""
+    t0 = time.perf_counter()
+    hits = jax.block_until_ready(ji.intersect(scene.replace(verify="none"), rays))
+    call_s = time.perf_counter() - t0
+    hit = np.asarray(hits.hit, bool).reshape(n)
+    t = np.asarray(hits.t, np.float64).reshape(n)
+    both = hit & c_hit
+    dt = np.abs(t[both] - c_t[both])
+    return dict(call='ji.intersect(scene.replace(verify="none"), camera.rays())',
+                first_call_s=call_s, hit_agree=float(np.mean(hit == c_hit)),
+                t_equal=float(np.mean(dt == 0)) if dt.size else None,
+                depth_max=float(np.max(dt)) if dt.size else None,
+                steps_equal=float(np.mean(np.asarray(hits.steps).reshape(n) == c_steps)))
+
+
+def scalar(b, cfg):
+    size = cfg["size"]
+    n = size * size
+    name = "barth_sextic"
+    scene = surface_scene(name)
+    cam = ji.surfaces.camera(name, size)
+    rays = cam.rays()
+    plan = ji.plan_for(scene, n)
+    threads = os.cpu_count() or 1
+    max_steps = MAX_STEPS["t-bisection"]
+    print(f"== Scalar C loop: {name}, interval t-bisection, eps 2^-11, {size}x{size}; "
+          f"jaxiso's default call (plan {plan!r}) beside benchmarks/scalar_bisect.c on "
+          f"{threads} and 1 thread(s), same process, same rays")
+    result = dict(surface=name, size=size, eps=EPS_DEFAULT, arithmetic="interval",
+                  rounding="fast", max_steps=max_steps, threads=threads,
+                  c_source=str(SCALAR_C.relative_to(ROOT.parent)),
+                  c_hit_point="midpoint of the accepted piece (as jaxiso; the seed's "
+                              "Algorithm 7 returns its left end)",
+                  c_depth_rule="d_max = ceil(log2(|p_exit - p_enter| / eps)) (Eq. 6.19), "
+                               "clamped to [0, 30]; hit = enclosure holds 0 at d_max (the "
+                               "seed's rule, no sign check)",
+                  jaxiso_verify=scene.verify)
+    # (a) jaxiso, the call a user writes (always the median of `repeats`: no slow_s cut)
+    hits, row = common.user_call(lambda: ji.intersect(scene, rays), plan,
+                                 "ji.intersect(scene, camera.rays())", b.repeats, math.inf)
+    flat = jax.tree_util.tree_map(lambda a: a.reshape((n,) + a.shape[2:]), hits)
+    packet = n if plan.lanes else plan.packet
+    row.update(label="jaxiso default: intersect", impl="jaxiso", threads=None,
+               mrays_per_s=n / row["run_s"] / 1e6,
+               **work(flat, "t-bisection", None if plan.lanes else packet, row["run_s"]))
+    j_hit = np.asarray(flat.hit, bool)
+    j_t = np.asarray(flat.t, np.float64)
+    rows = [row]
+    ref = None
+    if has_reference(name):
+        t_ref, ref_s = b.reference(name, size)
+        ref = np.isfinite(t_ref)
+        result["reference_s"] = ref_s
+        row.update(hit_agree_reference=float(np.mean(j_hit == ref)), **accuracy(j_hit, j_t,
+                                                                                t_ref))
+    # (b) the C loop, built at run time
+    tmp = tempfile.TemporaryDirectory(prefix="jaxiso_scalar_")
+    try:
+        lib, cmd, compile_s, why = build_scalar(tmp.name)
+        result.update(c_compile_cmd=cmd, c_compile_s=compile_s)
+        if lib is None:
+            result["c_skipped"] = why
+            print(f"  C loop skipped: {why}")
+        else:
+            result["c_parallel"] = {1: "openmp", 2: "pthreads"}[lib.parallel_backend()]
+            result["c_enclosures_vs_jaxiso"] = scalar_enclosures_match(lib, name)
+            o = np.ascontiguousarray(np.asarray(rays.origin, np.float32).reshape(n, 3))
+            d = np.ascontiguousarray(np.asarray(rays.direction, np.float32).reshape(n, 3))
+            lo = np.ascontiguousarray(np.asarray(scene.lo, np.float32))
+            hi = np.ascontiguousarray(np.asarray(scene.hi, np.float32))
+            eps = float(scene.eps)
+            outs = {}
+            for nt in dict.fromkeys((threads, 1)):
+                out, timing = common.time_calls(
+                    lambda nt=nt: scalar_trace(lib, o, d, eps, lo, hi, max_steps, nt),
+                    b.repeats, math.inf)
+                c_hit, c_t, _ = out
+                outs[nt] = (c_hit, c_t)
+                _, _, steps = scalar_trace(lib, o, d, eps, lo, hi, max_steps, nt, steps=True)
+                if nt == threads:
+                    steps_all = steps
+                c_row = dict(label=f"scalar C, {nt} thread{'s' if nt > 1 else ''}",
+                             impl="c", threads=nt, call="trace()", plan=None,
+                             compile_cmd=cmd, compile_s=compile_s, compile_cached=False,
+                             parallel=result["c_parallel"], **timing,
+                             mrays_per_s=n / timing["run_s"] / 1e6,
+                             **work(types.SimpleNamespace(steps=steps, hit=c_hit),
+                                    "t-bisection", None, timing["run_s"]))
+                both = c_hit & j_hit
+                dt = np.abs(c_t[both] - j_t[both])
+                c_row.update(hit_agree_jaxiso=float(np.mean(c_hit == j_hit)),
+                             depth_vs_jaxiso_median=float(np.median(dt)) if dt.size else None,
+                             depth_vs_jaxiso_p99=(float(np.percentile(dt, 99)) if dt.size
+                                                  else None),
+                             depth_vs_jaxiso_max=float(np.max(dt)) if dt.size else None)
+                if ref is not None:
+                    c_row.update(hit_agree_reference=float(np.mean(c_hit == ref)),
+                                 **accuracy(c_hit, c_t, t_ref))
+                rows.append(c_row)
+            result["c_vs_jaxiso_seed_rule"] = scalar_seed_rule_check(
+                scene, rays, n, *outs[threads], steps_all)
+            hs = [h for h, _ in outs.values()]
+            ts = [t for _, t in outs.values()]
+            result["c_threads_identical"] = bool(all(np.array_equal(hs[0], h) for h in hs)
+                                                 and all(np.array_equal(ts[0], t)
+                                                         for t in ts))
+    finally:
+        tmp.cleanup()
+    printed = [[r["label"], *work_cells(r), fmt(r.get("hit_agree_jaxiso"), ".4f"),
+                fmt(r.get("hit_agree_reference"), ".4f"),
+                fmt(r.get("depth_vs_jaxiso_median"), ".2e")] for r in rows]
+    print_table(["implementation", *WORK_HDR, "=jaxiso", "=ref", "|dt| med"], printed)
+    if result["c_compile_cmd"] and "c_skipped" not in result:
+        enc = result["c_enclosures_vs_jaxiso"]
+        print(f"  C: {result['c_compile_cmd']} ({result['c_parallel']}, compile "
+              f"{result['c_compile_s']:.2f} s); enclosures bitwise equal to ji.extend's on "
+              f"{enc['bitwise_equal']:.4f} of {enc['boxes']} random boxes; same result on "
+              f"every thread count: {result['c_threads_identical']}")
+        sr = result["c_vs_jaxiso_seed_rule"]
+        print(f"  C vs jaxiso with the seed's hit rule (verify='none', one untimed call): "
+              f"hit masks equal on {sr['hit_agree']:.4f} of pixels, t equal on "
+              f"{fmt(sr['t_equal'], '.4f')} of common hits (max |dt| "
+              f"{fmt(sr['depth_max'], '.1e')}), steps per ray equal on "
+              f"{sr['steps_equal']:.4f}")
+    c_all = next((r for r in rows if r["impl"] == "c" and r["threads"] == threads), None)
+    if c_all is not None:
+        ratio = row["mrays_per_s"] / c_all["mrays_per_s"]
+        result.update(ratio=ratio, met=ratio >= 1.0)
+        verdict = (f"  verdict: jaxiso default {row['mrays_per_s']:.3f} Mrays/s / scalar C "
+                   f"({threads} threads) {c_all['mrays_per_s']:.3f} Mrays/s = {ratio:.2f}x "
+                   f"({'at least' if ratio >= 1.0 else 'below'} the C loop's speed)")
+    else:
+        result.update(ratio=None, met=None)
+        verdict = (f"  verdict: no C loop ({result.get('c_skipped')}); jaxiso default "
+                   f"{row['mrays_per_s']:.3f} Mrays/s")
+    result["verdict"] = verdict.strip()
+    print(verdict)
+    print("  (=jaxiso: share of pixels whose hit equals jaxiso's; =ref: equals the float64 "
+          "reference's; |dt| med: median |t_C - t_jaxiso| where both hit; jaxiso verifies "
+          f"hits ({scene.verify!r}), the C loop takes the seed's enclosure rule)\n")
+    result["rows"] = rows
+    return result
+
+
 def target(b, cfg, result):
     """>= 1 Mray/s on the Barth sextic at eps 2^-11 with the best configuration measured;
     affine arithmetic is also run in the fastest (interval) packet configuration."""
@@ -634,7 +896,8 @@ def main(argv=None):
     cfg = config(args)
     run = common.Run("implicit", args, only, cfg, default=float, numpy_version=False)
     b = Bench(args.repeats, args.slow_s)
-    funcs = dict(table61=table61, table62=table62, packets=packets, sweep=sweep)
+    funcs = dict(table61=table61, table62=table62, packets=packets, sweep=sweep,
+                 scalar=scalar)
     run.sections(SECTIONS, lambda sec: funcs[sec](b, cfg))
     result = run.result
     try:
