@@ -465,3 +465,13 @@ def test_walks_verify_levels_above_d_max_and_hit_the_root_part(levels):
         np.testing.assert_array_equal(hit, rooted, err_msg=str(path))
         assert np.all(np.abs(s[rooted] - p[rooted, 0]) <= 2.0**-13 + 1e-7), path
         assert steps[rooted].mean() < 0.7 * ref[2][rooted].mean(), path
+
+
+@pytest.mark.parametrize("n", [1, 7, 512, 4099])
+@pytest.mark.parametrize("share", [0.0, 0.03, 0.5, 1.0])
+def test_stable_partition_is_a_stable_argsort_of_the_flags(n, share):
+    """The lanes' queue order (counting, not sorting) equals numpy's stable argsort."""
+    from jaxiso._lanes import stable_partition
+    flags = np.random.default_rng(n).uniform(size=n) < share
+    got = np.asarray(jax.jit(stable_partition)(jnp.asarray(flags)))
+    np.testing.assert_array_equal(got, np.argsort(~flags, kind="stable"))
