@@ -141,7 +141,7 @@ def _t_step(test, st, max_steps=None, ahead=None):
     k, d, go = st["k"], st["d"], st["going"]
     if max_steps is not None:
         go = go & (st["steps"] < max_steps)
-    r = test(*piece(k, d))
+    r = _materialized(test(*piece(k, d)))
     accept = r.possible & r.finite & ((d >= st["dmax"]) | r.small)
     descend = r.possible & ~accept & (d < st["dmax"])
     k_new, d_new, finished = advance(k, d, accept, descend, st["d0"])
@@ -155,6 +155,20 @@ def _t_step(test, st, max_steps=None, ahead=None):
     return dict(st, k=jnp.where(go, k_new, k), d=jnp.where(go, d_new, d),
                 going=st["going"] & ~(go & finished), hit=st["hit"] | (go & accept),
                 steps=st["steps"] + go.astype(jnp.int32))
+
+
+def _materialized(r: BoxTest) -> BoxTest:
+    """The test's outcome as one array computed once. XLA CPU fused the enclosure into
+    every state leaf's update (k, d, going, hit: four copies of one ~880-instruction
+    loop for the affine Barth sextic) and drops optimization barriers before fusion; a
+    scatter is never fused into its users, so they read its result."""
+    code = (r.possible.astype(jnp.int32) | (r.finite.astype(jnp.int32) << 1)
+            | (r.small.astype(jnp.int32) << 2))
+    flat = code.reshape(-1)
+    at = jnp.arange(flat.shape[0])
+    flat = jnp.zeros_like(flat).at[at].set(flat, unique_indices=True, indices_are_sorted=True)
+    code = flat.reshape(code.shape)
+    return BoxTest((code & 1) != 0, (code & 2) != 0, (code & 4) != 0)
 
 
 def _t_result(out) -> Result:
