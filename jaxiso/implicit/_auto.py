@@ -107,9 +107,10 @@ def _pieces(lo, hi):
     centre = lo_ + rng.uniform(0.1, 0.9, (N_PIECES, 3)) * (hi_ - lo_)
     direction = rng.normal(size=(N_PIECES, 3))
     direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-    D = jnp.asarray(direction * PIECE * diag, jnp.float32)
-    p = jnp.asarray(centre, jnp.float32) - 0.5 * D
-    s = jnp.linspace(0.0, 1.0, SAMPLES)
+    # numpy, not eager jnp: each eager op compiles on its first call (a second in all)
+    D = (direction * PIECE * diag).astype(np.float32)
+    p = centre.astype(np.float32) - np.float32(0.5) * D
+    s = np.linspace(0.0, 1.0, SAMPLES, dtype=np.float32)
     return p, D, p[:, None, :] + s[None, :, None] * D[:, None, :]
 
 
@@ -137,16 +138,18 @@ def _pick(vals, widths: dict, cost: float, what: str) -> tuple[str, str]:
 
 def _width_program(g, arithmetic: str, w, params, rounding: str):
     """The traced (not compiled) program of the enclosures' widths on the sample pieces
-    in `arithmetic`, a `jax.stages.Traced` of (p, D, w, params); traced on the
+    in `arithmetic`, a `jax.stages.Traced` of (p, D, s0, s1, w, params); traced on the
     arguments' shapes, so it works for traced w and params too."""
-    s0, s1 = jnp.zeros(N_PIECES), jnp.ones(N_PIECES)
     piece = jax.ShapeDtypeStruct((N_PIECES, 3), jnp.float32)
-    shapes = (piece, piece) + jax.tree_util.tree_map(
+    ends = jax.ShapeDtypeStruct((N_PIECES,), jnp.float32)
+    shapes = (piece, piece, ends, ends) + jax.tree_util.tree_map(
         lambda v: jax.ShapeDtypeStruct(jnp.shape(v), jnp.result_type(v)), (w, params))
     F = extended(g, arithmetic, rounding)
 
-    # one compile: eager, the interpreter dispatches thousands of small ops
-    def width(p, D, w, params):
+    # one compile: eager, the interpreter dispatches thousands of small ops (and the
+    # piece ends are arguments: constants would be computed eagerly under the
+    # preparation's `ensure_compile_time_eval`, a compile per operation)
+    def width(p, D, s0, s1, w, params):
         r = enclosure(F, ray_boxes(p, D, s0, s1, arithmetic), w, params, arithmetic)
         return r.hi - r.lo
 
@@ -194,8 +197,9 @@ def _width_programs(g, w, params, rounding: str) -> tuple[dict, str | None]:
 def _measure(g, lo, hi, w, params, rounding: str) -> tuple[str, str]:
     p, D, pts = _pieces(lo, hi)
     programs, too_long = _width_programs(g, w, params, rounding)
-    vals = on_points(g)(pts[..., 0], pts[..., 1], pts[..., 2], w, params)
-    widths = {"interval": programs["interval"].lower().compile()(p, D, w, params)}
+    vals = jax.jit(on_points(g))(pts[..., 0], pts[..., 1], pts[..., 2], w, params)
+    ends = np.zeros(N_PIECES, np.float32), np.ones(N_PIECES, np.float32)
+    widths = {"interval": programs["interval"].lower().compile()(p, D, *ends, w, params)}
     if too_long is not None:
         ratio = _median_ratio(vals, widths["interval"])
         if ratio <= INTERVAL_GOOD_ENOUGH:
@@ -204,7 +208,7 @@ def _measure(g, lo, hi, w, params, rounding: str) -> tuple[str, str]:
                                 "not compiled)")
         if "affine" not in programs:
             programs["affine"] = _width_program(g, "affine", w, params, rounding)
-    widths["affine"] = programs["affine"].lower().compile()(p, D, w, params)
+    widths["affine"] = programs["affine"].lower().compile()(p, D, *ends, w, params)
     return _pick(vals, widths, COST_RATIO, "")
 
 
