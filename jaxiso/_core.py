@@ -359,7 +359,8 @@ def on_points(g: Callable) -> Callable:
     point, unbatched. Each output leaf gets S in front of its per-point shape. Every place
     that evaluates a user's function on many points goes through here, so that any
     scalar JAX function works (``jnp.stack([x, y, z]) @ W`` included), and functions
-    that broadcast by themselves give the same values as called on arrays."""
+    that broadcast by themselves give the same values as called on arrays (up to float
+    rounding where either is compiled: XLA may fuse a * b + c into an FMA)."""
     @functools.wraps(g)
     def G(x, y, z, *rest):
         x, y, z = jnp.broadcast_arrays(x, y, z)

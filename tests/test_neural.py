@@ -388,6 +388,45 @@ def test_auto_does_not_compile_a_long_affine_extension(monkeypatch):
         assert ("affine not compiled" in report) != measured, report
 
 
+# one operation of each kind in AFFINE_RULE_FLOOR, on forms and with a constant operand
+_FLOOR_CASES = {
+    "mul": [lambda x, y, z: x * y, lambda x, y, z: 0.3 * x, lambda x, y, z: x * -2.0],
+    "integer_pow": [lambda x, y, z: x**2, lambda x, y, z: x**3, lambda x, y, z: x**4,
+                    lambda x, y, z: x**7],
+    "exp": [lambda x, y, z: jnp.exp(x)], "log": [lambda x, y, z: jnp.log(x)],
+    "sqrt": [lambda x, y, z: jnp.sqrt(x)],
+    "max": [lambda x, y, z: jnp.maximum(x, y), lambda x, y, z: jnp.maximum(x, 0.0)],
+    "min": [lambda x, y, z: jnp.minimum(x, y), lambda x, y, z: jnp.minimum(x, 0.0)],
+    "abs": [lambda x, y, z: jnp.abs(x)], "sin": [lambda x, y, z: jnp.sin(x)],
+    "cos": [lambda x, y, z: jnp.cos(x)], "tanh": [lambda x, y, z: jnp.tanh(x)],
+}
+
+
+def test_affine_rule_floors_are_lower_bounds_of_the_rules():
+    """`_auto.affine_floor` skips tracing an affine extension it bounds from below: each
+    floor must be at most the rule's measured length (else auto would refuse affine to a
+    function whose extension is short)."""
+    from jaxiso.implicit import _auto
+    from jaxiso.implicit._field import ray_boxes
+
+    def length(f, arithmetic="affine"):
+        F = ji.extend(f, arithmetic, n_symbols=1)
+        run = lambda p, D, s0, s1: F(*ray_boxes(p, D, s0, s1, arithmetic))  # noqa: E731
+        args = (jnp.zeros((4, 3)), jnp.ones((4, 3)), jnp.zeros(4), jnp.ones(4))
+        return _auto.equation_count(jax.make_jaxpr(run)(*args))
+
+    base = length(lambda x, y, z: x)
+    assert set(_FLOOR_CASES) == set(_auto.AFFINE_RULE_FLOOR)
+    for name, cases in _FLOOR_CASES.items():
+        for f in cases:
+            assert length(f) - base >= _auto.AFFINE_RULE_FLOOR[name], name
+    # the floor of a program: distinct operations on the coordinates only
+    g = lambda x, y, z, w, p: x * y + x * y + 2.0 * p + jnp.exp(z) * 0.5  # noqa: E731
+    floor = _auto.affine_floor(g, 0.0, jnp.float32(1.0))
+    assert floor == 2 * _auto.AFFINE_RULE_FLOOR["mul"] + _auto.AFFINE_RULE_FLOOR["exp"]
+    assert floor <= length(lambda x, y, z: x * y + x * y + 2.0 + jnp.exp(z) * 0.5) - base
+
+
 def test_auto_under_a_trace_picks_affine():
     @jax.jit
     def build_and_hit(r):

@@ -156,6 +156,12 @@ def mul(a, b) -> Affine:
         a, b = b, a
     if not isinstance(b, (Affine, Interval)):  # constant factor: an exact affine scaling
         (a,) = lift(a)
+        k = ia.static_factor(b)
+        if k is not None:  # a finite nonzero coefficient: nothing to guard but overflow
+            k = k.astype(a.center.dtype)
+            return guard_unbounded(Affine(k * a.center, k[..., None] * a.dev,
+                                          np.abs(k) * a.err, a.defined), a,
+                                   fallback=ia.mul(padded_range(a), k))
         k = jnp.asarray(b, a.center.dtype)
         # a NaN factor gives no value (empty), as in interval arithmetic
         return guard_unbounded(Affine(k * a.center, k[..., None] * a.dev,
@@ -303,12 +309,15 @@ def div(a, b) -> Affine:
     if not isinstance(b, (Affine, Interval)):
         # a constant divisor scales exactly (one rounding per term); 0 takes recip's path
         (a,) = lift(a)
+        if _is_concrete(b) and bool(np.all(np.asarray(b) != 0)):
+            # the usual x / 8: no recip of the constant to select from (checked before
+            # jnp.asarray, which stages a conversion under a trace: no longer concrete)
+            k = np.asarray(b, a.center.dtype)
+            return Affine(a.center / k, a.dev / k[..., None], a.err / np.abs(k), a.defined)
         b = jnp.asarray(b, a.center.dtype)
         safe = jnp.where(b == 0, 1.0, b)
         scaled = Affine(a.center / safe, a.dev / safe[..., None], a.err / jnp.abs(safe),
                         a.defined)
-        if _is_concrete(b) and bool(np.all(np.asarray(b) != 0)):
-            return scaled  # the usual x / 8: no recip of the constant to select from
         return select(b != 0, scaled, mul(a, recip(b)))
     a, b = lift(a, b)
     return mul(a, recip(b))

@@ -124,10 +124,49 @@ def endpoint_product(u, v):
     return jnp.where((u == 0) | (v == 0), jnp.zeros_like(p), p)
 
 
+def static_factor(k):
+    """k as a numpy array when it is a concrete finite nonzero constant (a coefficient
+    such as 0.3 * x or x / 3: two endpoint operations, no hull of four), else None.
+    Checked before any jnp conversion, which stages an operation under a trace."""
+    if isinstance(k, (Interval, jax.core.Tracer)):
+        return None
+    try:
+        k = np.asarray(k)
+    except (TypeError, ValueError):
+        return None
+    if k.dtype == object or not np.issubdtype(k.dtype, np.floating) and not np.issubdtype(
+            k.dtype, np.integer):
+        return None
+    k = k.astype(np.float32) if np.issubdtype(k.dtype, np.integer) else k
+    return k if bool(np.all(np.isfinite(k) & (k != 0))) else None
+
+
+def _scaled(a: Interval, k, op) -> Interval:
+    """``op(a, k)`` for a constant k from `static_factor` (op: multiply or divide; one
+    rounding per endpoint, as the general rules): monotone in a, decreasing where k < 0."""
+    k = k.astype(a.lo.dtype) if k.dtype != a.lo.dtype else k
+    u, v = op(a.lo, k), op(a.hi, k)
+    if bool(np.all(k > 0)):
+        lo, hi = u, v
+    elif bool(np.all(k < 0)):
+        lo, hi = v, u
+    else:
+        lo, hi = jnp.minimum(u, v), jnp.maximum(u, v)
+    return make(lo, hi, a)
+
+
 def mul(a, b) -> Interval:
     """Product (Eq. 6.5): hull of the four endpoint products."""
     if a is b:
         return square(a)
+    if isinstance(a, Interval) and not isinstance(b, Interval):
+        k = static_factor(b)
+        if k is not None:
+            return _scaled(a, k, jnp.multiply)
+    if isinstance(b, Interval) and not isinstance(a, Interval):
+        k = static_factor(a)
+        if k is not None:
+            return _scaled(b, k, jnp.multiply)
     a, b = as_interval(a), as_interval(b)
     p = (endpoint_product(a.lo, b.lo), endpoint_product(a.lo, b.hi),
          endpoint_product(a.hi, b.lo), endpoint_product(a.hi, b.hi))
@@ -161,6 +200,10 @@ def div(a, b) -> Interval:
     if a is b:  # x / x is 1 wherever it is defined
         return where(contains(a, 0.0), mul(a, recip(a)),
                      make(*same_nan(jnp.ones_like(a.lo), jnp.ones_like(a.lo), a.lo), a))
+    if isinstance(a, Interval) and not isinstance(b, Interval):
+        k = static_factor(b)
+        if k is not None:
+            return _scaled(a, k, jnp.divide)
     a, b = as_interval(a), as_interval(b)
     r = recip(b)  # r.lo pairs with b.hi, r.hi with b.lo
 

@@ -159,9 +159,10 @@ def _monotone_with_params(name, fn):
 
 def _div_interval(a, b) -> Interval:
     """ia.div, and lax.div on integers (truncating toward 0: monotone in the quotient)."""
+    if not jnp.issubdtype(jnp.result_type(a.lo if isinstance(a, Interval) else a),
+                          jnp.integer):
+        return ia.div(a, b)  # a constant divisor stays one (`ia.div` scales by it)
     a, b = ia.as_interval(a), ia.as_interval(b)
-    if not jnp.issubdtype(a.lo.dtype, jnp.integer):
-        return ia.div(a, b)
     as_float = lambda x: Interval(x.lo.astype(jnp.float32), x.hi.astype(jnp.float32),  # noqa: E731
                                   x.defined)
     q = ia.div(as_float(a), as_float(b))

@@ -23,6 +23,7 @@ interval is hopeless (networks) affine is compiled and measured whatever its len
 from __future__ import annotations
 
 import jax
+import jax.extend.core
 import jax.numpy as jnp
 import numpy as np
 
@@ -176,16 +177,68 @@ def equation_count(jaxpr) -> int:
 AFFINE_OVER_INTERVAL = 1.9
 
 
+# Lower bounds of the affine rules' sizes (jaxpr equations per operation on a form of
+# the coordinates, the smallest over operand kinds: a product by a constant is ~160, of
+# two forms ~290; x**2 ~180, x**3 ~770), checked against the rules by
+# tests/test_neural.py. Their sum over f's distinct operations is a floor of the affine
+# extension's length, known from f's own jaxpr (traced in milliseconds) where tracing the
+# extension itself takes seconds (a 216-operation polynomial: 4.9 s for 29.8k equations).
+AFFINE_RULE_FLOOR = {"mul": 150, "integer_pow": 150, "exp": 250, "log": 300, "sqrt": 300,
+                     "max": 180, "min": 180, "abs": 200, "sin": 200, "cos": 200,
+                     "tanh": 200}
+
+
+def affine_floor(g, w, params) -> int:
+    """A lower bound of the equations of g's affine extension: `AFFINE_RULE_FLOOR` summed
+    over g's distinct operations on values that depend on x, y or z (nested calls
+    included; other nested jaxprs, such as a cond's branches, count nothing)."""
+    scalar = jax.ShapeDtypeStruct((), jnp.float32)
+    rest = jax.tree_util.tree_map(
+        lambda v: jax.ShapeDtypeStruct(jnp.shape(v), jnp.result_type(v)), (w, params))
+    closed = jax.make_jaxpr(g)(scalar, scalar, scalar, *rest)
+    n_in = len(closed.jaxpr.invars)
+    return _floor(closed.jaxpr, [True] * 3 + [False] * (n_in - 3), set())
+
+
+def _floor(jaxpr, lifted_in, seen) -> int:
+    lifted = {v for v, on in zip(jaxpr.invars, lifted_in) if on}
+    n = 0
+    for eqn in jaxpr.eqns:
+        ins = [not isinstance(v, jax.extend.core.Literal) and v in lifted
+               for v in eqn.invars]
+        if not any(ins):
+            continue
+        lifted.update(eqn.outvars)
+        body = eqn.params.get("jaxpr")
+        if eqn.primitive.name in ("pjit", "jit", "closed_call") and body is not None:
+            n += _floor(getattr(body, "jaxpr", body), ins, seen)
+            continue
+        name = eqn.primitive.name
+        if name == "integer_pow" and eqn.params.get("y", 0) < 2:
+            continue
+        key = (name, str(sorted(eqn.params.items())),
+               tuple(repr(v.val) if isinstance(v, jax.extend.core.Literal) else id(v)
+                     for v in eqn.invars))
+        if key not in seen:  # a repeated operation is extended once (`extend`)
+            seen.add(key)
+            n += AFFINE_RULE_FLOOR.get(name, 0)
+    return n
+
+
 def _width_programs(g, w, params, rounding: str) -> tuple[dict, str | None]:
     """({arithmetic: its width program (`_width_program`)}, None), or ({...}, why) when
     the affine program is too long to compile (it is not traced at all, and not in the
-    dict, when the interval program's length already shows it)."""
+    dict, when the interval program's length or `affine_floor` already shows it)."""
     programs = {"interval": _width_program(g, "interval", w, params, rounding)}
     n = equation_count(programs["interval"].jaxpr)
     if n * AFFINE_OVER_INTERVAL > AFFINE_MAX_EQUATIONS:
         return programs, (f"the interval extension of f is {n:,} equations, its affine "
                           f"one at least {AFFINE_OVER_INTERVAL}x that, over "
                           f"{AFFINE_MAX_EQUATIONS:,}")
+    floor = affine_floor(g, w, params)
+    if floor > AFFINE_MAX_EQUATIONS:
+        return programs, (f"the affine extension of f is at least {floor:,} equations "
+                          f"(its operations' rules), over {AFFINE_MAX_EQUATIONS:,}")
     programs["affine"] = _width_program(g, "affine", w, params, rounding)
     n = equation_count(programs["affine"].jaxpr)
     if n > AFFINE_MAX_EQUATIONS:

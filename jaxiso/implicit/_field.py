@@ -20,6 +20,7 @@ import numpy as np
 
 from .._core import on_points, slab, unit_or_facing
 from ..arith import Affine, Interval, aa, extend, ia
+from ._memo import BoundedCache
 
 
 def as_field(f, has_params: bool):
@@ -58,10 +59,20 @@ def as_field(f, has_params: bool):
         raise TypeError(f"f must take (x, y, z[, w][, params]); it takes {n} positional "
                         "arguments")
 
+    # one jit of f per (f, has_params): every point evaluation of a render (the lanes'
+    # verification, normals, gradients, auto's values) binds f's jaxpr, traced once,
+    # instead of running f's Python again under each transformation
+    traced = _POINT_FUNCTIONS.get((f, has_params), lambda: jax.jit(call))
+
     def g(x, y, z, w, params):
-        return _real_value(call(x, y, z, w, params), x, y, z, w)
+        if any(isinstance(v, (Interval, Affine)) for v in (x, y, z, w)):
+            return _real_value(call(x, y, z, w, params), x, y, z, w)
+        return _real_value(traced(x, y, z, w, params), x, y, z, w)
 
     return g
+
+
+_POINT_FUNCTIONS = BoundedCache("jitted point functions", 32)
 
 
 def _real_value(value, *coords):
@@ -179,14 +190,20 @@ def touches(value_grad, m, value, grad, level, length):
         g_q, grad_q = value_grad(q)
         return q, g_q - level, grad_q, jnp.sum(grad_q * grad_q, axis=-1)
 
-    q, gap_q, grad_q, slope2_q = newton(m, gap, grad, slope2)
-    shrinks = slope2_q <= _SINGULAR**2 * slope2
-    regular = jnp.zeros_like(shrinks)
-    for _ in range(_REGULAR_STEPS):
+    # the steps as a loop, not unrolled: each step evaluates g and its gradient, and g
+    # may be a long program (one copy of its code in the compiled render, not four)
+    def step(i, carry):
+        q, gap_q, grad_q, slope2_q, shrinks, regular = carry
         q, gap_n, grad_q, slope2_n = newton(q, gap_q, grad_q, slope2_q)
-        regular |= (8.0 * jnp.abs(gap_n) <= jnp.abs(gap_q)) & (
+        first = i == 0
+        shrinks = jnp.where(first, slope2_n <= _SINGULAR**2 * slope2_q, shrinks)
+        regular |= ~first & (8.0 * jnp.abs(gap_n) <= jnp.abs(gap_q)) & (
             slope2_n > _SINGULAR**2 * slope2_q)
-        gap_q, slope2_q = gap_n, slope2_n
+        return q, gap_n, grad_q, slope2_n, shrinks, regular
+
+    no = jnp.zeros_like(near)
+    *_, shrinks, regular = jax.lax.fori_loop(0, 1 + _REGULAR_STEPS, step,
+                                             (m, gap, grad, slope2, no, no))
     return (gap == 0) | (near & shrinks & ~regular)
 
 
