@@ -357,3 +357,32 @@ def test_repeated_subexpressions_are_extended_once():
     d = extend(lambda x, y, z: x**3 - x**3, "affine")(*box)
     r = jnp.sum(jnp.abs(d.dev), axis=-1) + d.err
     assert float(jnp.max(jnp.abs(d.center))) == 0.0 and float(jnp.max(r)) == 0.0
+
+
+@pytest.mark.parametrize("arithmetic", ["interval", "affine"])
+def test_constant_factors_and_divisors_enclose(arithmetic):
+    """A concrete coefficient scales each end (`ia.static_factor`): sound with outward
+    rounding for either sign, tiny and huge constants, on the left or right, against
+    float64 points of each box (the ends included)."""
+    rng = np.random.default_rng(0)
+    lo = rng.uniform(-3, 3, 400).astype(np.float32)
+    hi = lo + rng.uniform(0, 2, 400).astype(np.float32)
+    t = rng.uniform(0, 1, (40, 400))
+    t[0], t[1] = 0.0, 1.0
+    pts = lo.astype(np.float64) + t * (hi.astype(np.float64) - lo.astype(np.float64))
+    for k in (0.3, -0.3, 3, -7, 1e-30, -1e30, 2.0**-20, np.float32(1.5)):
+        for fn in (lambda a: a * k, lambda a: a / k, lambda a: k * a):
+            r = ji.extend(fn, arithmetic, rounding="outward")(
+                Interval(jnp.asarray(lo), jnp.asarray(hi)))
+            r = aa.to_interval(r) if arithmetic == "affine" else r
+            v = fn(pts)
+            assert np.all(v >= np.asarray(r.lo, np.float64)), k
+            assert np.all(v <= np.asarray(r.hi, np.float64)), k
+    # mixed signs in an array constant, an empty box, 0 * inf
+    a = Interval(jnp.asarray([-1.0, 2.0, 0.0]), jnp.asarray([1.0, 3.0, 1.0]))
+    r = ia.mul(a, np.array([0.5, -2.0, 4.0], np.float32))
+    np.testing.assert_array_equal(np.asarray(r.lo), [-0.5, -6.0, 0.0])
+    np.testing.assert_array_equal(np.asarray(r.hi), [0.5, -4.0, 4.0])
+    r = ia.mul(Interval(jnp.asarray([0.0, -jnp.inf, jnp.nan]),
+                        jnp.asarray([0.0, 1.0, jnp.nan])), 0.5)
+    assert np.asarray(r.lo)[:2].tolist() == [0.0, -np.inf] and np.isnan(np.asarray(r.lo)[2])
