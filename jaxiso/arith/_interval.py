@@ -134,9 +134,8 @@ def static_factor(k):
         k = np.asarray(k)
     except (TypeError, ValueError):
         return None
-    if k.dtype == object or not np.issubdtype(k.dtype, np.floating) and not np.issubdtype(
-            k.dtype, np.integer):
-        return None
+    if not (np.issubdtype(k.dtype, np.floating) or np.issubdtype(k.dtype, np.integer)):
+        return None  # objects, bools, complex
     k = k.astype(np.float32) if np.issubdtype(k.dtype, np.integer) else k
     return k if bool(np.all(np.isfinite(k) & (k != 0))) else None
 
