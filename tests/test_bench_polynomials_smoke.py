@@ -3,20 +3,14 @@ sampling (numpy only), and a --quick run (one fresh process, 32^2, about 15-20 s
 2-core CPU) writing the JSON the full benchmark writes, with the default call's hit
 mask agreeing with the reference."""
 
-import importlib.util
 import json
-import pathlib
 
 import numpy as np
-
-BENCH = pathlib.Path(__file__).resolve().parent.parent / "benchmarks" / "bench_polynomials.py"
+from test_bench_smoke import BENCHMARKS, load_module
 
 
 def load_bench():
-    spec = importlib.util.spec_from_file_location("bench_polynomials", BENCH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_module(BENCHMARKS / "bench_polynomials.py")
 
 
 def test_reference_roots_match_dense_sampling():

@@ -309,10 +309,9 @@ def div(a, b) -> Affine:
     if not isinstance(b, (Affine, Interval)):
         # a constant divisor scales exactly (one rounding per term); 0 takes recip's path
         (a,) = lift(a)
-        if _is_concrete(b) and bool(np.all(np.asarray(b) != 0)):
-            # the usual x / 8: no recip of the constant to select from (checked before
-            # jnp.asarray, which stages a conversion under a trace: no longer concrete)
-            k = np.asarray(b, a.center.dtype)
+        k = ia.static_factor(b)  # the usual x / 8: no recip of the constant to select from
+        if k is not None:
+            k = k.astype(a.center.dtype)
             return Affine(a.center / k, a.dev / k[..., None], a.err / np.abs(k), a.defined)
         b = jnp.asarray(b, a.center.dtype)
         safe = jnp.where(b == 0, 1.0, b)
