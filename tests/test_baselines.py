@@ -98,7 +98,9 @@ def test_mitchell_agrees_with_t_bisection_on_barth_sextic():
     from reference_trace64 import first_roots
 
     s = surfaces.get("barth_sextic")
-    scene = jaxiso.ImplicitSurface(s.f, s.lo, s.hi)
+    # both in interval arithmetic (auto would give t-bisection the polynomial enclosure;
+    # Mitchell's pieces are boxes)
+    scene = jaxiso.ImplicitSurface(s.f, s.lo, s.hi, arithmetic="interval")
     r = rays(24, eye=(3.5, 2.5, 2.0), fov=45.0)
     hm = trace(scene, r, method="mitchell", eps=EPS)
     ht = trace(scene, r, method="t-bisection", eps=EPS)

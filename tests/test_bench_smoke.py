@@ -126,7 +126,7 @@ def test_quick_run_writes_json(tmp_path):
     for key in ("jax_version", "backend", "device_kind", "cpu_count", "repeats", "config",
                 "table61", "table62", "packets", "sweep", "target", "charts", "total_s"):
         assert key in result, key
-    assert result["sections"] == ["table61", "table62", "packets", "sweep"]
+    assert result["sections"] == ["table61", "table62", "packets", "sweep", "scalar"]
 
     row_keys = ("surface", "method", "arithmetic", "eps", "size", "plan", "tile", "lanes",
                 "packet", "compile_s",

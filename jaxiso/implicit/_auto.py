@@ -32,6 +32,7 @@ from ..arith import Interval, _tape, aa
 from ._field import enclosure, extended, ray_boxes
 from ._grid import values_key
 from ._memo import BoundedCache
+from ._polynomial import MAX_DEGREE
 from ._progress import Progress
 from .program import evaluate_tapes
 
@@ -56,6 +57,12 @@ AFFINE_MAX_EQUATIONS = 8000
 # 8 x 32 elu network written with jnp: 11,973 affine equations); polynomials are within
 # a few times.
 INTERVAL_GOOD_ENOUGH = 16.0
+# Polynomials from this degree get arithmetic "polynomial" (`_polynomial`). Measured on
+# the catalogue at 128^2 (benchmarks/NOTES.md, session 29): first calls 1.1-1.6 s
+# against affine's 1.8-8.6 s, calls as fast or faster from degree 4 (Barth decic 0.09
+# against 0.48 s); a quadric's affine form is as tight for fewer operations (sphere
+# 14 ms a call against 28 ms), so quadrics are measured as before.
+AUTO_MIN_DEGREE = 3
 
 
 # choices by (f, rounding, box): the choice is a property of the function on its box,
@@ -63,10 +70,15 @@ INTERVAL_GOOD_ENOUGH = 16.0
 _CHOICES = BoundedCache("arithmetic choices", 32)
 
 
-def choose_arithmetic(f, g, lo, hi, w, params, rounding: str, tape=None
+def choose_arithmetic(f, g, lo, hi, w, params, rounding: str, tape=None, degree=None
                       ) -> tuple[str, str]:
     """(arithmetic, report) for the field g (of the user's f) on the box [lo, hi] at w
-    and params; for a long program, `tape` (its instruction tape), measured on the tape
+    and params. A polynomial f (`degree`, its total degree in x, y, z, from
+    `AUTO_MIN_DEGREE` to `_polynomial.MAX_DEGREE`) with the "fast" rounding gets
+    "polynomial" unmeasured: its
+    Chebyshev enclosure is exact up to rounding for linear f and converges quadratically,
+    and it compiles as f's point evaluations do. Otherwise, for a long program, `tape`
+    (its instruction tape), measured on the tape
     evaluator; measured once per f, rounding and box (`_CHOICES`, emptied by
     `jaxiso.clear_caches`). Traced inputs (a scene prepared under jit) are not
     measured: they get "affine", which converges on every f jaxiso
@@ -74,6 +86,10 @@ def choose_arithmetic(f, g, lo, hi, w, params, rounding: str, tape=None
     the affine extension is over `AFFINE_MAX_EQUATIONS`: nothing tells there whether
     interval is good enough), and the report says so (prepare the scene outside the
     trace, `ImplicitSurface.prepared`)."""
+    if rounding == "fast" and degree is not None and AUTO_MIN_DEGREE <= degree <= MAX_DEGREE:
+        return "polynomial", (f"auto: polynomial (f is a polynomial of degree {degree} in "
+                              f"x, y, z: each ray piece is enclosed by f's Chebyshev "
+                              f"coefficients along it, from {degree + 1} point values)")
     leaves = [lo, hi, w] + jax.tree_util.tree_leaves(params)
     if any(concrete(x) is None for x in leaves):
         if tape is not None:

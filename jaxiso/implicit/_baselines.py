@@ -41,7 +41,7 @@ from jax import lax
 
 from ..arith import Affine, aa, extend
 from . import _bisect
-from ._field import contains_any, enclosure, extended, on_points, ray_boxes
+from ._field import box_arithmetic, contains_any, enclosure, extended, on_points, ray_boxes
 
 __all__ = ["mitchell", "sampling", "sphere"]
 
@@ -165,8 +165,10 @@ def mitchell(g, scene, p, D, inside, eps, arithmetic="interval", rounding="fast"
     Options:
       refine_steps: bound on regula falsi iterations (default 60).
     steps counts inclusion evaluations (F, plus the derivative where it is computed) and
-    refinement iterations.
+    refinement iterations. Its pieces are boxes: a "polynomial" scene's run in interval
+    arithmetic (`_field.box_arithmetic`).
     """
+    arithmetic = box_arithmetic(arithmetic)
     F = extended(g, arithmetic, rounding)
     H = _derivative_extension(g, scene, arithmetic, rounding)
     refine_steps = DEFAULT_REFINE_STEPS if refine_steps is None else int(refine_steps)

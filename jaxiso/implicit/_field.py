@@ -99,25 +99,25 @@ def ray_boxes(p, D, s0, s1, arithmetic: str):
     """Boxes enclosing the piece ``p + D s``, s in [s0, s1]: a list of 3 Intervals or
     3 single-symbol Affine forms (p, D: [..., 3]; s0, s1: [...]).
 
-    Boxes are padded by `_OVERLAP` ulps of their coordinates: neighbouring pieces then
+    Boxes are padded by `BOX_OVERLAP` ulps of their coordinates: neighbouring pieces then
     overlap, so a root on a shared endpoint is not lost to a rounding difference between
     the lower- and upper-bound paths (XLA contracts a*b+c into FMAs differently there)."""
-    if arithmetic == "interval":
+    if box_arithmetic(arithmetic) == "interval":
         a = p + D * s0[..., None]
         b = p + D * s1[..., None]
         lo, hi = jnp.minimum(a, b), jnp.maximum(a, b)
-        pad = _OVERLAP * jnp.maximum(jnp.abs(lo), jnp.abs(hi))
+        pad = BOX_OVERLAP * jnp.maximum(jnp.abs(lo), jnp.abs(hi))
         lo, hi = lo - pad, hi + pad
         return [Interval(lo[..., i], hi[..., i]) for i in range(3)]
     sm = 0.5 * (s0 + s1)
     sr = 0.5 * (s1 - s0)
     c = p + D * sm[..., None]
     dev = D * sr[..., None]
-    pad = _OVERLAP * (jnp.abs(c) + jnp.abs(dev))
+    pad = BOX_OVERLAP * (jnp.abs(c) + jnp.abs(dev))
     return [Affine(c[..., i], dev[..., i:i + 1], pad[..., i]) for i in range(3)]
 
 
-_OVERLAP = 4.0 * 2.0**-24  # 4 ulps (relative)
+BOX_OVERLAP = 4.0 * 2.0**-24  # 4 ulps (relative)
 
 
 def enclosure(F, boxes, w, params, arithmetic: str) -> Interval:
@@ -133,8 +133,17 @@ def contains_any(r: Interval, isovalues):
     return possible, jnp.isfinite(r.hi - r.lo)
 
 
+def box_arithmetic(arithmetic: str) -> str:
+    """The arithmetic of boxes for a scene's arithmetic: "polynomial" encloses ray pieces
+    of t-/K-bisection only (`_polynomial`); sign grids, Mitchell's method and the tape
+    path enclose its boxes in interval arithmetic."""
+    return "interval" if arithmetic == "polynomial" else arithmetic
+
+
 def extended(g, arithmetic: str, rounding: str):
-    """The inclusion extension of g (one noise symbol in affine mode)."""
+    """The inclusion extension of g (one noise symbol in affine mode; "polynomial":
+    interval, `box_arithmetic`)."""
+    arithmetic = box_arithmetic(arithmetic)
     if arithmetic not in ("interval", "affine"):
         raise ValueError(f"arithmetic must be 'interval' or 'affine', got {arithmetic!r}")
     return extend(g, arithmetic, rounding, n_symbols=1 if arithmetic == "affine" else None)
@@ -390,5 +399,6 @@ def point_normal(g, p, w, params, direction, stencil=None):
 
 
 __all__ = ["as_field", "on_points", "root_check", "VERIFY", "ray_boxes", "enclosure",
+           "box_arithmetic", "BOX_OVERLAP",
            "contains_any", "extended", "clip_to_box", "ray_segments", "touches",
            "point_normal", "ia"]

@@ -9,11 +9,13 @@ of ray segments ``p + s D`` (p, D: [P, 3], inside: [P]) of the point field g, an
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 
 from . import _baselines
 from ._bisect import Bisection, BoxTest, run_bisection
 from ._field import contains_any, enclosure, extended, ray_boxes, root_check
+from ._polynomial import chebyshev_enclosure
 
 __all__ = ["Method", "METHODS", "BISECTIONS", "check_lanes", "scene_options",
            "HEAVY_VERIFY_LEVELS"]
@@ -47,11 +49,17 @@ def scene_options(scene, names) -> dict:
 def _bisection(g, scene, p, D, inside, lanes=None, empty=None):
     """t- or K-bisection of f's enclosures in the scene's arithmetic, hits verified by
     the scene's `verify` policy."""
-    F = extended(g, scene.arithmetic, scene.rounding)
+    if scene.arithmetic == "polynomial":
+        enclose = functools.partial(chebyshev_enclosure, g, scene.facts.degree)
+    else:
+        F = extended(g, scene.arithmetic, scene.rounding)
+
+        def enclose(p, D, s0, s1, w, params):
+            return enclosure(F, ray_boxes(p, D, s0, s1, scene.arithmetic), w, params,
+                             scene.arithmetic)
 
     def test(p, D, s0, s1):
-        boxes = ray_boxes(p, D, s0, s1, scene.arithmetic)
-        r = enclosure(F, boxes, scene.w, scene.params, scene.arithmetic)
+        r = enclose(p, D, s0, s1, scene.w, scene.params)
         possible, finite = contains_any(r, scene.isovalues)
         return BoxTest(possible, finite, (r.hi - r.lo) < scene.delta)
 

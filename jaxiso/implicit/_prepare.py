@@ -21,8 +21,10 @@ from ._auto import choose_arithmetic
 from ._culling import sign_grid_for
 from ._memo import BoundedCache
 from ._policy import is_heavy
+from ._polynomial import MAX_DEGREE, TABLE_FROM, chebyshev_table, polynomial_degree
 
-__all__ = ["FunctionFacts", "function_facts", "prepare_surface", "params_structure"]
+__all__ = ["FunctionFacts", "function_facts", "prepare_surface", "params_structure",
+           "check_polynomial"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -32,10 +34,15 @@ class FunctionFacts:
 
     heavy: f computes at least `_policy.HEAVY_ELEMENTS` numbers per point (a network).
     tape: f's instruction tape when it is a long program (the tape path), else None.
+    degree: f's total degree in x, y, z when it is a polynomial in them, else None
+    (`_polynomial.polynomial_degree`).
+    length: the equations of f's jaxpr.
     """
 
     heavy: bool
     tape: object = None
+    degree: int | None = None
+    length: int = 0
 
 
 # facts by (f, params' structure): they depend on nothing else
@@ -45,8 +52,28 @@ _FACTS = BoundedCache("facts of functions", 32)
 def function_facts(scene) -> FunctionFacts:
     """The facts of the scene's f (traces f once per f and params structure; never
     evaluates it)."""
-    return _FACTS.get((scene.f, params_structure(scene.params)), lambda: FunctionFacts(
-        is_heavy(scene.field, scene.params), scene.long_tape()))
+    def learn():
+        degree, length = polynomial_degree(scene.field, scene.w, scene.params)
+        return FunctionFacts(is_heavy(scene.field, scene.params), scene.long_tape(), degree,
+                             length)
+
+    return _FACTS.get((scene.f, params_structure(scene.params)), learn)
+
+
+def check_polynomial(degree, rounding: str) -> None:
+    """ValueError unless arithmetic "polynomial" applies: f a polynomial in x, y, z of
+    degree 1 to `MAX_DEGREE`, with the "fast" rounding (its pad is not outward rounding)."""
+    if degree is None:
+        raise ValueError('arithmetic="polynomial" needs f to be a polynomial in x, y, z '
+                         "(sums, products, integer powers and constants; w and params "
+                         'may enter anyhow); use "interval", "affine" or "auto"')
+    if not 1 <= degree <= MAX_DEGREE:
+        raise ValueError(f'arithmetic="polynomial" encloses degrees 1 to {MAX_DEGREE}; f '
+                         f'has degree {degree}: use "interval", "affine" or "auto"')
+    if rounding != "fast":
+        raise ValueError('arithmetic="polynomial" rounds like rounding="fast" (a padded '
+                         'float32 enclosure); with rounding="outward" use "interval" or '
+                         '"affine"')
 
 
 def params_structure(params):
@@ -65,10 +92,17 @@ def prepare_surface(scene):
         if arithmetic == "auto":
             arithmetic, arithmetic_report = choose_arithmetic(
                 scene.f, scene.field, scene.lo, scene.hi, scene.w, scene.params,
-                scene.rounding, facts.tape)
+                scene.rounding, facts.tape, facts.degree)
+        elif arithmetic == "polynomial":
+            check_polynomial(facts.degree, scene.rounding)
+        table = scene.polynomial_table
+        if arithmetic == "polynomial" and table is None and facts.length >= TABLE_FROM:
+            table = chebyshev_table(scene.field, facts.degree, scene.lo, scene.hi, scene.w,
+                                    scene.params)
         grid, culling_report = scene.sign_grid, scene.culling_report
         if grid is None:
             grid, culling_report = sign_grid_for(scene, facts.heavy)
     return dataclasses.replace(scene, facts=facts, arithmetic=arithmetic,
                                arithmetic_report=arithmetic_report, sign_grid=grid,
+                               polynomial_table=table,
                                culling_report=culling_report, ready=True)

@@ -31,6 +31,7 @@ from ._hits import finish_hits
 from ._methods import METHODS
 from ._options import CULLINGS, DEFAULT_EPS, ImplicitOptions
 from ._policy import TAPE_TILE, is_heavy, packet_plan
+from ._polynomial import ChebyshevTable
 from ._prepare import FunctionFacts, params_structure, prepare_surface
 from ._tape_path import intersect_tape
 from .program import long_program_tape, tape_of
@@ -54,10 +55,15 @@ class ImplicitSurface(ImplicitOptions):
     Static fields (a new value compiles anew):
       f: ``f(x, y, z[, w][, params])`` in plain jax.numpy on scalars (one point in, one
         number out; it need not broadcast over arrays: jaxiso vmaps it).
-      arithmetic: "auto" (default), "interval" or "affine". "auto" measures both on
-        sample ray pieces when the scene is prepared and keeps the cheapest that is tight
-        enough (`jaxiso.implicit._auto`); the prepared scene holds the choice in
-        `arithmetic` (kept by `replace`) and the measurement in `arithmetic_report`.
+      arithmetic: "auto" (default), "interval", "affine" or "polynomial". "auto" picks
+        "polynomial" for a polynomial f of degree 1-16 (read from its jaxpr), and
+        otherwise measures interval and affine on sample ray pieces when the scene is
+        prepared and keeps the cheapest that is tight enough (`jaxiso.implicit._auto`);
+        the prepared scene holds the choice in `arithmetic` (kept by `replace`) and the
+        reason in `arithmetic_report`. "polynomial" encloses a ray piece by f's
+        Chebyshev coefficients along it, from degree + 1 point values
+        (`jaxiso.implicit._polynomial`; boxes elsewhere, such as sign grids, in
+        interval arithmetic).
       method: "t-bisection" | "k-bisection" | "mitchell" | "sampling" | "sphere".
       rounding: "fast" (the seed) or "outward" (enclosures hold against exact arithmetic).
       normals: None (jax.grad of f) or the width of a central-difference stencil.
@@ -86,6 +92,10 @@ class ImplicitSurface(ImplicitOptions):
         Not used while delta > 0.
     Set by preparation (`prepared`; `replace` keeps them while their inputs stay):
       sign_grid: the grid (None: none, or not prepared).
+      polynomial_table: arithmetic "polynomial" on an f of `_polynomial.TABLE_FROM`
+        equations or more: f's Chebyshev coefficients on the box
+        (`_polynomial.ChebyshevTable`), which the bisection evaluates instead of f's
+        own code (hits, normals and derivatives are finished on f).
       facts: what was learnt of f (`_prepare.FunctionFacts`: network, long program).
       ready: the scene is prepared (intersect and render do no further work).
     """
@@ -111,10 +121,11 @@ class ImplicitSurface(ImplicitOptions):
     culling: str = static_field("auto")
     sign_grid: SignGrid | None = None
     culling_report: str = static_field("")
+    polynomial_table: ChebyshevTable | None = None
     facts: FunctionFacts | None = static_field(None)
     ready: bool = static_field(False)
 
-    arithmetics = ARITHMETICS + ("auto",)
+    arithmetics = ARITHMETICS + ("polynomial", "auto")
 
     def __post_init__(self):
         self._validate()
@@ -137,6 +148,7 @@ class ImplicitSurface(ImplicitOptions):
             changes.setdefault("facts", None)
         if changes.keys() & GRID_INPUTS:
             changes.setdefault("sign_grid", None)
+            changes.setdefault("polynomial_table", None)
         stale = (changes.get("facts", self.facts) is None
                  or (changes.get("sign_grid", self.sign_grid) is None
                      and changes.keys() & GRID_INPUTS)
@@ -173,16 +185,24 @@ class ImplicitSurface(ImplicitOptions):
         return None if tree is False else long_program_tape(self.f, tree)
 
     def is_heavy(self) -> bool:
-        """Whether f is a network (`_policy.is_heavy`)."""
+        """Whether the bisection's function is a network (`_policy.is_heavy`): a long
+        polynomial traced through its Chebyshev table (`polynomial_table`) is not, the
+        table costs (degree + 1)^3 products a point whatever f's length (8 x 150 at 64^2:
+        first intersect 14.0 s as heavy, on lanes; 5.3 s not)."""
+        if self.polynomial_table is not None:
+            return False
         return self.facts.heavy if self.facts is not None else is_heavy(self.field,
-                                                                         self.params)
+                                                                        self.params)
 
     def preferred_plan(self, n_rays: int, backend: str) -> Plan:
         """Long programs (`program.TAPE_CROSSOVER` instructions or more) in t-/K-bisection
         with the seed's rounding run on the tape path (interval or affine); others as
         measured per arithmetic and backend (`_policy.packet_plan`)."""
         method = METHODS[self.method]
-        if method.bisects and self.rounding == "fast" and self.long_tape() is not None:
+        # a polynomial has no min / max for the tape to prune, and its enclosure costs
+        # as many point evaluations as its degree (`_polynomial`): the straight path
+        if (method.bisects and self.rounding == "fast" and self.long_tape() is not None
+                and self.arithmetic != "polynomial"):
             return Plan(tile=TAPE_TILE, tape=True)
         heavy = method.lanes and self.is_heavy()
         arithmetic = "affine" if self.arithmetic == "auto" else self.arithmetic
@@ -220,6 +240,10 @@ class ImplicitSurface(ImplicitOptions):
         if scene.sign_grid is not None:
             t0, t1, inside, p, D, empty = near_possible_cells(scene, t0, t1, inside, p, D)
         g = scene.field
-        res = METHODS[scene.method].kernel(g, scene, p, D, inside, lanes=lanes, empty=empty)
+        # a long polynomial is traced through its Chebyshev table in the kernel (a few
+        # small products per copy, whatever f's length); hits are finished on f itself
+        kernel_g = g if scene.polynomial_table is None else scene.polynomial_table
+        res = METHODS[scene.method].kernel(kernel_g, scene, p, D, inside, lanes=lanes,
+                                           empty=empty)
         t_raw = jnp.where(res.hit, t0 + res.s * (t1 - t0), jnp.inf)
         return finish_hits(g, me, rays, t_raw, res.hit, res.steps, me.normals)

@@ -45,7 +45,14 @@ from ..arith._affine_type import Affine
 from ..arith._interval import Interval
 from ..arith._tape import Tape
 from ._bisect import depth_for, piece_width
-from ._field import CLOSER_PARTS, changes_sign, ray_boxes, ray_segments, touches
+from ._field import (
+    CLOSER_PARTS,
+    box_arithmetic,
+    changes_sign,
+    ray_boxes,
+    ray_segments,
+    touches,
+)
 from .program import ambiguous_positions, chunked_eval, gather_children, histogram
 
 __all__ = ["intersect_rays", "ROOT_GROUP", "ROOT_SLABS", "ROOT_GROUPS",
@@ -525,7 +532,7 @@ def _traverse(run: _Run, work: list, n_pad: int, per_level: dict | None):
         depth = max(depth, level + 1)
         children, amb, chosen, counts, first = _level(
             tapes, reg, run.seg, run.scene.lo, run.scene.hi, run.rest, run.iso, first, G,
-            q, h, run.scene.arithmetic)
+            q, h, box_arithmetic(run.scene.arithmetic))
         n_valid, n_amb, n_unfinished = (int(c) for c in counts)
         pieces = (_survivors(run, tapes, children, amb, chosen, n_amb, level, h)
                   if n_amb else [])

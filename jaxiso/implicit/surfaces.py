@@ -324,6 +324,12 @@ def get(name: str) -> Surface:
 # where it meets the bound (water: 0.68 eps) and is cheaper.
 _ARITHMETIC = {name: "affine" for name in _CATALOGUE}
 _ARITHMETIC["water"] = "interval"
+# polynomials of degree 3 and up take the default, "auto", which encloses them by their
+# Chebyshev coefficients along each ray (exact along the ray as the affine form is,
+# max |t - t64| measured by the same test)
+for _name in ("steiner", "mitchell", "teardrop", "klein", "tangle", "decocube",
+              "barth_sextic", "barth_decic", "morph"):
+    _ARITHMETIC[_name] = "auto"
 
 
 def _csg_expr(entry: Surface):
