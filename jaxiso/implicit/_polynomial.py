@@ -158,21 +158,25 @@ def chebyshev_enclosure(g, degree: int, p, D, s0, s1, w, params) -> Interval:
     ``c_0 +- sum_{k >= 1} |c_k|`` of its Chebyshev coefficients on the piece."""
     n = max(int(degree), 1)
     nodes, M, norm = chebyshev_map(n)
-    s = s0[..., None] + (s1 - s0)[..., None] * jnp.asarray(nodes, jnp.float32)
-    q = p[..., None, :] + D[..., None, :] * s[..., None]               # [..., n + 1, 3]
-    v = on_points(g)(q[..., 0], q[..., 1], q[..., 2], w, params)        # [..., n + 1]
-    c = v @ jnp.asarray(M.T, jnp.float32)                               # [..., n + 1]
-    pad = (norm * (_VALUE_ULPS + n + 1) * 2.0**-24) * jnp.max(jnp.abs(v), axis=-1)
+    # the nodes on the leading axis: the map is one [n + 1, n + 1] x [n + 1, ...] product
+    # and the sums run across whole rows of pieces (2x faster on the CPU than [..., n + 1])
+    node = jnp.asarray(nodes, jnp.float32).reshape((n + 1,) + (1,) * s0.ndim)
+    s = s0 + (s1 - s0) * node                                           # [n + 1, ...]
+    q = p + D * s[..., None]                                            # [n + 1, ..., 3]
+    v = on_points(g)(q[..., 0], q[..., 1], q[..., 2], w, params)        # [n + 1, ...]
+    c = jnp.tensordot(jnp.asarray(M, jnp.float32), v, axes=1)           # [n + 1, ...]
+    pad = (norm * (_VALUE_ULPS + n + 1) * 2.0**-24) * jnp.max(jnp.abs(v), axis=0)
     # the sample points are rounded by up to BOX_OVERLAP of their coordinates (as
     # `_field.ray_boxes` pads its boxes): a shift du along the piece (in its [-1, 1]
     # units) moves the series by at most du sum k^2 |c_k| (Markov's inequality)
-    length = jnp.linalg.norm(D, axis=-1) * jnp.abs(s1 - s0)
-    shift = BOX_OVERLAP * (jnp.max(jnp.linalg.norm(q, axis=-1), axis=-1) + length)
-    du = 2.0 * shift / jnp.maximum(length, jnp.finfo(jnp.float32).tiny)
-    k2 = jnp.asarray(np.arange(1, n + 1) ** 2, jnp.float32)
-    slope = jnp.sum(k2 * jnp.abs(c[..., 1:]), axis=-1)
-    spread = jnp.sum(jnp.abs(c[..., 1:]), axis=-1) + pad + jnp.minimum(du, 2.0) * slope
-    return Interval(c[..., 0] - spread, c[..., 0] + spread)
+    speed = jnp.linalg.norm(D, axis=-1)
+    reach = jnp.linalg.norm(p, axis=-1) + speed * jnp.maximum(jnp.abs(s0), jnp.abs(s1))
+    length = speed * jnp.abs(s1 - s0)
+    du = 2.0 * BOX_OVERLAP * reach / jnp.maximum(length, jnp.finfo(jnp.float32).tiny)
+    a = jnp.abs(c[1:])
+    k2 = jnp.asarray(np.arange(1, n + 1) ** 2, jnp.float32).reshape((n,) + (1,) * s0.ndim)
+    spread = jnp.sum(a, axis=0) + pad + jnp.minimum(du, 2.0) * jnp.sum(k2 * a, axis=0)
+    return Interval(c[0] - spread, c[0] + spread)
 
 
 # A polynomial f of at least this many jaxpr equations is traced through its Chebyshev
