@@ -582,6 +582,19 @@ def _apply_cond(branches, index, operands, ctx: _Context):
 # ------------------------------------------------- flat programs (for jaxiso.arith._tape)
 
 
+def equation_count(jaxpr) -> int:
+    """Equations of a jaxpr (or closed jaxpr), those of nested jaxprs included."""
+    jaxpr = getattr(jaxpr, "jaxpr", jaxpr)
+    n = 0
+    for eqn in jaxpr.eqns:
+        n += 1
+        for value in eqn.params.values():
+            for sub in value if isinstance(value, (list, tuple)) else (value,):
+                if hasattr(getattr(sub, "jaxpr", sub), "eqns"):
+                    n += equation_count(sub)
+    return n
+
+
 def value_elements(f: Callable, n_args: int) -> int:
     """How many numbers f computes per point: the summed sizes of every equation's outputs
     in f's jaxpr on `n_args` float32 scalars (call-like bodies counted inside). A cost

@@ -29,6 +29,7 @@ import numpy as np
 
 from .._core import concrete, on_points
 from ..arith import Interval, _tape, aa
+from ..arith._extend import equation_count
 from ._field import enclosure, extended, ray_boxes
 from ._grid import values_key
 from ._memo import BoundedCache
@@ -171,19 +172,6 @@ def _width_program(g, arithmetic: str, w, params, rounding: str):
         return r.hi - r.lo
 
     return jax.jit(width).trace(*shapes)
-
-
-def equation_count(jaxpr) -> int:
-    """Equations of a jaxpr (or closed jaxpr), those of nested jaxprs included."""
-    jaxpr = getattr(jaxpr, "jaxpr", jaxpr)
-    n = 0
-    for eqn in jaxpr.eqns:
-        n += 1
-        for value in eqn.params.values():
-            for sub in value if isinstance(value, (list, tuple)) else (value,):
-                if hasattr(getattr(sub, "jaxpr", sub), "eqns"):
-                    n += equation_count(sub)
-    return n
 
 
 # An affine program is at least this many times its interval one (measured 1.9x on the
