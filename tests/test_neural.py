@@ -345,13 +345,20 @@ def test_auto_arithmetic_picks_and_reports():
 
 
 def _long_polynomial(x, y, z):
-    """A random-looking polynomial of 40 terms up to degree 6: its affine extension is
-    far longer than its interval one (~14k against ~2.5k equations)."""
-    s = x * x + y * y + z * z - 0.5
+    """A random-looking polynomial of 40 terms up to degree 6 plus a small sine (so not
+    a polynomial: those get arithmetic "polynomial", tests/test_polynomial.py): its
+    affine extension is far longer than its interval one (~14k against ~2.5k
+    equations)."""
+    s = x * x + y * y + z * z - 0.5 + 0.01 * jnp.sin(x * y)
     for i in range(40):
         a, b, c = i % 4, (i // 4) % 3, (i // 12) % 3
         s = s + (0.01 * ((i * 7) % 11 - 5)) * x**a * y**b * z**c
     return s
+
+
+def _short_wave(x, y, z):
+    """A cubic plus a small sine: short, and no polynomial."""
+    return x**3 + y**3 + z**3 - 0.5 + 0.05 * jnp.sin(z)
 
 
 def test_auto_does_not_compile_a_long_affine_extension(monkeypatch):
@@ -375,14 +382,14 @@ def test_auto_does_not_compile_a_long_affine_extension(monkeypatch):
     traced(jnp.float32(0.0))
     assert seen[0][0] == "interval" and "equations" in seen[0][1]
     # below the limit the widths are measured as before
-    scene = ji.ImplicitSurface(lambda x, y, z: x**3 + y**3 + z**3 - 0.5, (-1,) * 3,
-                               (1,) * 3)
+    scene = ji.ImplicitSurface(_short_wave, (-1,) * 3, (1,) * 3)
     assert "equations" not in scene.prepared().arithmetic_report
     # over the limit, affine is still compiled and measured where interval is hopeless
     monkeypatch.setattr(_auto, "AFFINE_MAX_EQUATIONS", 100)
     for good_enough, measured in ((_auto.INTERVAL_GOOD_ENOUGH, False), (0.5, True)):
         monkeypatch.setattr(_auto, "INTERVAL_GOOD_ENOUGH", good_enough)
-        report = ji.ImplicitSurface(lambda x, y, z: x**3 + y**3 + z**3 - 0.5, (-1,) * 3,
+        # a new function object each time: the choice is memoised per function
+        report = ji.ImplicitSurface(lambda x, y, z: _short_wave(x, y, z), (-1,) * 3,
                                     (1,) * 3).prepared().arithmetic_report
         assert ("median enclosure width / true range on" in report) == measured, report
         assert ("affine not compiled" in report) != measured, report

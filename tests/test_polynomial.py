@@ -269,3 +269,61 @@ def test_long_polynomial_matches_float64_and_differentiates():
     ok = both & np.isfinite(fd) & (np.abs(dt) < 5)
     assert ok.sum() > 20
     np.testing.assert_allclose(dt[ok], fd[ok], rtol=0.05, atol=0.1)
+
+
+def test_spellings_of_one_polynomial_render_alike():
+    """One quartic written five ways (expanded, factored, Horner in x, with jnp.power
+    and a quadratic form, with its coefficients in params): every spelling reads as
+    degree 4, gets "polynomial" through the default call, and finds the same hits."""
+    def expanded_(x, y, z):
+        return (x**4 + 2 * x**2 * y**2 + 2 * x**2 * z**2 + y**4 + 2 * y**2 * z**2 + z**4
+                - 1.5 * x**2 - 1.5 * y**2 - 1.5 * z**2 + 0.5 + 0.3 * x * y * z)
+
+    def factored(x, y, z):
+        r2 = x * x + y * y + z * z
+        return (r2 - 0.5) * (r2 - 1.0) + 0.3 * x * y * z
+
+    def horner(x, y, z):
+        r = y * y + z * z
+        return (((x * x + (2 * r - 1.5)) * x * x) + (r * r - 1.5 * r + 0.5)
+                + 0.3 * x * y * z)
+
+    def powers(x, y, z):
+        v = jnp.stack([x, y, z])
+        r2 = v @ jnp.eye(3) @ v
+        return jnp.power(r2, 2) - 1.5 * r2 + 0.5 + 0.3 * jnp.prod(v)
+
+    def with_params(x, y, z, params):
+        r2 = jnp.dot(jnp.stack([x, y, z]) ** 2, params["w"])
+        return jnp.polyval(params["c"], r2) + params["k"] * x * y * z
+
+    params = {"w": jnp.ones(3), "c": jnp.array([1.0, -1.5, 0.5]), "k": jnp.float32(0.3)}
+    cam = ji.Camera.look_at((2.6, 1.9, 1.4), (0, 0, 0), (0, 0, 1), 35, 20, 20)
+    rays = cam.rays()
+    box = dict(lo=(-1.2,) * 3, hi=(1.2,) * 3)
+    results = {}
+    for f, extra in ((expanded_, {}), (factored, {}), (horner, {}), (powers, {}),
+                     (with_params, {"params": params})):
+        scene = ji.ImplicitSurface(f, **box, **extra).prepared()
+        assert scene.facts.degree == 4, f.__name__
+        assert scene.arithmetic == "polynomial", f.__name__
+        results[f.__name__] = ji.intersect(scene, rays)
+    first = results["expanded_"]
+    assert 0.2 < float(np.mean(first.hit)) < 0.9
+    for name, h in results.items():
+        assert np.mean(np.asarray(h.hit) == np.asarray(first.hit)) >= 0.995, name
+        both = np.asarray(h.hit) & np.asarray(first.hit)
+        assert np.max(np.abs(np.asarray(h.t)[both] - np.asarray(first.t)[both])) <= 2 * 2.0**-11
+
+
+def test_degree_through_loops_and_zero_terms():
+    """jnp.polyval (a scan: Horner's rule from a zero), a fori_loop of products, and
+    products with a literal zero."""
+    def rest(f):
+        return polynomial_degree(lambda x, y, z, w, p: f(x, y, z, p), 0.0, jnp.ones(5))[0]
+    assert rest(lambda x, y, z, p: jnp.polyval(p, x)) == 4
+    assert rest(lambda x, y, z, p: jnp.polyval(jnp.array([1.0, 2, 3, 4]), x * y)) == 6
+    assert rest(lambda x, y, z, p: jax.lax.fori_loop(0, 3, lambda i, c: c * x + y, 1.0)) == 3
+    assert rest(lambda x, y, z, p: 0.0 * x**7 + y) == 1
+    assert rest(lambda x, y, z, p: jax.lax.fori_loop(0, 3, lambda i, c: jnp.sin(c) * x,
+                                                       1.0)) is None

@@ -65,24 +65,34 @@ def polynomial_degree(g, w, params) -> tuple[int | None, int]:
     except Exception:  # noqa: BLE001 - not traceable on scalars: not ours to say
         return None, 0
     n_in = len(closed.jaxpr.invars)
-    out = _degrees(closed.jaxpr, [1, 1, 1] + [0] * (n_in - 3))
+    out = _degrees(closed, [1, 1, 1] + [0] * (n_in - 3))
     length = equation_count(closed.jaxpr)
     if out is None or len(out) != 1:
         return None, length
-    return out[0], length
+    return max(out[0], 0), length
+
+
+# The degree of the zero polynomial (a literal 0, e.g. the start of Horner's rule in
+# `jnp.polyval`): a product with it is zero, a sum takes the other operand's degree
+_ZERO = -1
 
 
 def _degrees(jaxpr, degrees_in):
-    """The degrees of jaxpr's outputs given its inputs' (0: constant), None when some
-    output is not a polynomial of the inputs."""
-    degree = dict(zip(jaxpr.invars, degrees_in))
+    """The degrees of the outputs of jaxpr (or a closed jaxpr) given its inputs' (0:
+    constant, `_ZERO`: zero), None when some output is not a polynomial of the inputs."""
+    consts = getattr(jaxpr, "consts", [])
+    jaxpr = getattr(jaxpr, "jaxpr", jaxpr)
+    degree = {v: _constant_degree(c) for v, c in zip(jaxpr.constvars, consts)}
+    degree.update(zip(jaxpr.invars, degrees_in))
 
     def of(v):
-        return 0 if isinstance(v, jax.extend.core.Literal) else degree.get(v, 0)
+        if isinstance(v, jax.extend.core.Literal):
+            return _constant_degree(v.val)
+        return degree.get(v, 0)
 
     for eqn in jaxpr.eqns:
         ins = [of(v) for v in eqn.invars]
-        if all(d == 0 for d in ins):
+        if all(d <= 0 for d in ins):
             degree.update((v, 0) for v in eqn.outvars)
             continue
         outs = _rule(eqn, ins)
@@ -102,13 +112,16 @@ def _rule(eqn, ins):
     if name in _MAX:
         return [max(ins)] * n_out
     if name in ("mul", "dot_general"):
-        return [sum(ins)] * n_out
+        return [_ZERO if _ZERO in ins else sum(ins)] * n_out
     if name == "div" and ins[1] == 0:
         return [ins[0]]
     if name == "integer_pow" and eqn.params["y"] >= 0:
         return [ins[0] * eqn.params["y"]]
     if name == "square":
         return [2 * ins[0]]
+    if name == "reduce_prod":  # a product of as many factors as the axes hold
+        shape = eqn.invars[0].aval.shape
+        return [ins[0] * int(np.prod([shape[a] for a in eqn.params["axes"]]))]
     if name == "pow" and ins[1] == 0:  # x ** 2.0: a literal whole exponent
         y = eqn.invars[1]
         y = getattr(y, "val", None) if isinstance(y, jax.extend.core.Literal) else None
@@ -116,10 +129,37 @@ def _rule(eqn, ins):
             return [ins[0] * int(y)]
     if name == "select_n" and ins[0] == 0:  # a choice fixed by constants only
         return [max(ins[1:])]
+    if name == "scan":
+        return _scan_degrees(eqn, ins)
     body = eqn.params.get(_BODIES.get(name, ""))
     if body is not None:
-        return _degrees(getattr(body, "jaxpr", body), ins)
+        return _degrees(body, ins)
     return None
+
+
+def _constant_degree(value) -> int:
+    """`_ZERO` for a scalar zero (a literal, or a constant a jit hoisted), else 0."""
+    try:
+        return _ZERO if np.ndim(value) == 0 and float(value) == 0.0 else 0
+    except (TypeError, ValueError):  # a tracer or something not numeric
+        return 0
+
+
+def _scan_degrees(eqn, ins):
+    """A scan's output degrees (`jnp.polyval` is one: Horner's rule over the
+    coefficients): its body run on degrees once per iteration, the stacked outputs
+    taking the largest degree of any iteration; None past degree 1,000 (not ours)."""
+    body = eqn.params["jaxpr"]
+    n_consts, n_carry = eqn.params["num_consts"], eqn.params["num_carry"]
+    consts, carry, xs = ins[:n_consts], ins[n_consts:n_consts + n_carry], ins[n_consts + n_carry:]
+    ys = None
+    for _ in range(eqn.params["length"]):
+        out = _degrees(body, consts + carry + xs)
+        if out is None or max(out, default=0) > 1000:
+            return None
+        carry = out[:n_carry]
+        ys = out[n_carry:] if ys is None else [max(a, b) for a, b in zip(ys, out[n_carry:])]
+    return carry + (ys if ys is not None else [0] * (len(eqn.outvars) - n_carry))
 
 
 @functools.cache
