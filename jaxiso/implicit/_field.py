@@ -102,7 +102,7 @@ def ray_boxes(p, D, s0, s1, arithmetic: str):
     Boxes are padded by `BOX_OVERLAP` ulps of their coordinates: neighbouring pieces then
     overlap, so a root on a shared endpoint is not lost to a rounding difference between
     the lower- and upper-bound paths (XLA contracts a*b+c into FMAs differently there)."""
-    if box_arithmetic(arithmetic) == "interval":
+    if arithmetic == "interval":
         a = p + D * s0[..., None]
         b = p + D * s1[..., None]
         lo, hi = jnp.minimum(a, b), jnp.maximum(a, b)
@@ -135,15 +135,14 @@ def contains_any(r: Interval, isovalues):
 
 def box_arithmetic(arithmetic: str) -> str:
     """The arithmetic of boxes for a scene's arithmetic: "polynomial" encloses ray pieces
-    of t-/K-bisection only (`_polynomial`); sign grids, Mitchell's method and the tape
-    path enclose its boxes in interval arithmetic."""
+    of t-/K-bisection only (`_polynomial`); Mitchell's method and the tape path map it
+    here at their entry and enclose its boxes in interval arithmetic (sign grids have
+    their own arithmetic)."""
     return "interval" if arithmetic == "polynomial" else arithmetic
 
 
 def extended(g, arithmetic: str, rounding: str):
-    """The inclusion extension of g (one noise symbol in affine mode; "polynomial":
-    interval, `box_arithmetic`)."""
-    arithmetic = box_arithmetic(arithmetic)
+    """The inclusion extension of g (one noise symbol in affine mode)."""
     if arithmetic not in ("interval", "affine"):
         raise ValueError(f"arithmetic must be 'interval' or 'affine', got {arithmetic!r}")
     return extend(g, arithmetic, rounding, n_symbols=1 if arithmetic == "affine" else None)

@@ -14,6 +14,8 @@ __all__ = ["packet_plan", "is_heavy", "HEAVY_ELEMENTS", "HEAVY_LANES_FROM", "CPU
 # one vmap over the whole image 0.025), affine in 8x8. From 2^16 rays t-bisection runs on
 # persistent lanes (affine at 512^2: 1.68 vs 0.41 Mrays/s in 8x8 tiles); K-bisection and
 # the baselines have no lanes form. Other backends are unmeasured (8x8 packets).
+# "polynomial" (point evaluations, like interval's cost per piece) takes interval's edge,
+# unmeasured: its scenes of 2^16 rays and more run on lanes
 CPU_TILES = {"interval": 4, "affine": 8, "polynomial": 4}
 # the tape path's ray groups: Z-order within tiles of this edge
 TAPE_TILE = 16
