@@ -87,6 +87,26 @@ def test_t_min_t_max_and_verify_policy_on_the_tape_path():
     assert not bool(ji.intersect(flat, r, plan=TAPE).hit[0])
 
 
+def test_touching_pieces_rechecked_apart_on_the_tape_path():
+    """A sphere whose f crosses its level beside one whose f only touches it (squared):
+    the touching pieces fail the sign test and are rechecked apart from the others
+    (`_tape_rays._recheck`); hits as the straight path's, which checks every piece."""
+    def f(x, y, z):
+        crossing = (x + 0.5) ** 2 + y * y + z * z - 0.09
+        touching = ((x - 0.5) ** 2 + y * y + z * z - 0.09) ** 2
+        return jnp.minimum(crossing, touching)
+
+    S = ji.ImplicitSurface(f, (-1,) * 3, (1,) * 3, arithmetic="interval")
+    u = np.linspace(-0.95, 0.95, 20, dtype=np.float32)
+    x, y = np.meshgrid(u, u)
+    o = np.stack([x.ravel(), y.ravel(), np.full(x.size, 2.0, np.float32)], -1)
+    rays = ji.Rays(jnp.asarray(o), jnp.broadcast_to(jnp.array([0.0, 0.0, -1.0]), o.shape))
+    a = ji.intersect(S, rays, plan=TAPE)
+    _compare(a, ji.intersect(S, rays, plan=STRAIGHT), S.eps)
+    inside = (x.ravel() - 0.5) ** 2 + y.ravel() ** 2 < 0.08  # clear of the rim
+    assert np.all(np.asarray(a.hit)[inside])
+
+
 def test_long_program_chooses_the_tape_plan_and_renders():
     prog = csg_program(60, seed=2)  # ~1,300 instructions: above the crossover
     lo, hi = (-1.6,) * 3, (1.6,) * 3

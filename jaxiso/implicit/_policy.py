@@ -6,8 +6,7 @@ from __future__ import annotations
 from .._core import LANES, Plan, cpu_lanes
 from ..arith._extend import value_elements
 
-__all__ = ["packet_plan", "is_heavy", "HEAVY_ELEMENTS", "HEAVY_LANES_FROM", "CPU_TILES",
-           "TAPE_TILE"]
+__all__ = ["packet_plan", "is_heavy", "HEAVY_ELEMENTS", "HEAVY_LANES_FROM", "CPU_TILES"]
 
 # CPU packet edges from the packet table of benchmarks/bench_implicit.py on the 2-core CPU:
 # interval t-bisection was fastest in 4x4 tiles (Barth sextic 0.74 Mrays/s vs 0.57 in 8x8;
@@ -17,8 +16,6 @@ __all__ = ["packet_plan", "is_heavy", "HEAVY_ELEMENTS", "HEAVY_LANES_FROM", "CPU
 # "polynomial" (point evaluations, like interval's cost per piece) takes interval's edge,
 # unmeasured: its scenes of 2^16 rays and more run on lanes
 CPU_TILES = {"interval": 4, "affine": 8, "polynomial": 4}
-# the tape path's ray groups: Z-order within tiles of this edge
-TAPE_TILE = 16
 
 # Heavy functions (networks: hundreds of numbers computed per point, `value_elements`)
 # gain from persistent lanes from 2^12 rays on the CPU: Spelunking's networks at 128^2,

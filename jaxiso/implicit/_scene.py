@@ -30,10 +30,11 @@ from ._grid import SignGrid
 from ._hits import finish_hits
 from ._methods import METHODS
 from ._options import CULLINGS, DEFAULT_EPS, ImplicitOptions
-from ._policy import TAPE_TILE, is_heavy, packet_plan
+from ._policy import is_heavy, packet_plan
 from ._polynomial import ChebyshevTable
 from ._prepare import FunctionFacts, params_structure, prepare_surface
 from ._tape_path import intersect_tape
+from ._tape_rays import tape_tile
 from .program import long_program_tape, tape_of
 
 __all__ = ["ImplicitSurface", "METHODS", "ARITHMETICS"]
@@ -203,7 +204,7 @@ class ImplicitSurface(ImplicitOptions):
         # as many point evaluations as its degree (`_polynomial`): the straight path
         if (method.bisects and self.rounding == "fast" and self.long_tape() is not None
                 and self.arithmetic != "polynomial"):
-            return Plan(tile=TAPE_TILE, tape=True)
+            return Plan(tile=tape_tile(n_rays), tape=True)
         heavy = method.lanes and self.is_heavy()
         arithmetic = "affine" if self.arithmetic == "auto" else self.arithmetic
         return packet_plan(method.lanes, arithmetic, n_rays, backend, heavy)

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from typing import NamedTuple
 
 import jax
@@ -56,7 +57,7 @@ from ._field import (
 from .program import ambiguous_positions, chunked_eval, gather_children, histogram
 
 __all__ = ["intersect_rays", "ROOT_GROUP", "ROOT_SLABS", "ROOT_GROUPS",
-           "batch_limit"]
+           "batch_limit", "root_group", "tape_tile"]
 
 # The root is one region (all rays, the full tape); its children are groups of
 # ROOT_GROUP rays (a 16 x 16 tile in Z-order) x ROOT_SLABS slabs, as MPR's / cast's root
@@ -64,7 +65,13 @@ __all__ = ["intersect_rays", "ROOT_GROUP", "ROOT_SLABS", "ROOT_GROUPS",
 # 256^2 kept 214 of 252 roots and pruned them only from 8,605 to ~7,000 instructions.
 ROOT_GROUP = 256
 ROOT_SLABS = 16
-# Roots are groups of at most ROOT_GROUPS x ROOT_GROUP rays (16,384), so that a root's
+# Larger images get larger root groups (ROOT_GROUP x a power of 4, a square of pixels),
+# at most ROOT_GROUP_COUNT of them: the full tape is evaluated on groups x ROOT_SLABS
+# regions and pruned per group, and for a long program those two steps dominate. Slab
+# 1024^2 with 256-ray groups: 65,536 root children took 6.0 s of a 26.8 s call, their
+# groups' pruning 5.0 s.
+ROOT_GROUP_COUNT = 256
+# Roots are groups of at most ROOT_GROUPS x root-group rays (16,384), so that a root's
 # children stay a bounded batch however many rays there are.
 ROOT_GROUPS = 64
 # Tapes padded to at most this many instructions are no longer pruned: on short tapes a
@@ -340,11 +347,32 @@ def _nearest(reg, ok, fm, grad, n_rays):
 def _final(tapes, reg, seg, rest, iso, policy, n_rays):
     """Verify every final piece (host-side driver), keep each ray's nearest."""
     fm, grad, ok = _final_checks(tapes, reg, seg, rest, iso, policy)
-    if policy != "none" and bool(jnp.any(reg["valid"] & ~ok)):
-        ok = ok | _final_closer(tapes, reg, seg, rest, iso)
-    if policy == "sign+distance" and bool(jnp.any(reg["valid"] & ~ok)):
-        ok = ok | _final_touching(tapes, reg, seg, rest, iso, fm, grad)
+    if policy != "none":
+        ok = _recheck(_final_closer, ok, tapes, reg, seg, rest, iso)
+    if policy == "sign+distance":
+        ok = _recheck(_final_touching, ok, tapes, reg, seg, rest, iso, fm, grad)
     return _nearest(reg, ok, fm, grad, n_rays)
+
+
+def _recheck(check, ok, tapes, reg, seg, rest, iso, *per_piece):
+    """ok [n] with `check` run on the valid pieces that are not ok yet, gathered apart
+    (a few grazing pieces of thousands: checking the whole batch cost 6.6 s of the slab's
+    26 s call at 1024^2). `per_piece`: more [n, ...] arrays `check` reads."""
+    failed = np.flatnonzero(np.asarray(reg["valid"] & ~ok))
+    if failed.size == 0:
+        return ok
+    size = _tape.bucket(failed.size, 8)
+    idx = jnp.asarray(np.pad(failed, (0, size - failed.size), mode="edge").astype(np.int32))
+    sub, sub_reg, sub_rest = _pieces_at(tapes, reg, per_piece, idx)
+    passed = check(sub, sub_reg, seg, rest, iso, *sub_rest)
+    return ok.at[idx].max(passed)
+
+
+@jax.jit
+def _pieces_at(tapes, reg, per_piece, idx):
+    """The final pieces at idx [m]: their tapes, regions and `per_piece` arrays."""
+    return (_tape.take_regions(tapes, idx), {k: v[idx] for k, v in reg.items()},
+            tuple(x[idx] for x in per_piece))
 
 
 @jax.jit
@@ -464,13 +492,28 @@ class _Run(NamedTuple):
     prune: bool
 
 
-def _root_groups(n: int, length: int, budget: int):
-    """(rays per group, groups per root) for n rays: `ROOT_GROUP` rays (fewer when there
-    are few rays) x at most `ROOT_GROUPS`, fewer for long tapes (`length`), so that one
-    root's children fit the budget."""
+def root_group(n: int) -> int:
+    """Rays per root group for a batch of n rays: `ROOT_GROUP` (fewer when there are few
+    rays), times 4 until there are at most `ROOT_GROUP_COUNT` groups."""
     group = ROOT_GROUP
     while group > 1 and group // 4 >= n:
         group //= 4
+    while n > group * ROOT_GROUP_COUNT:
+        group *= 4
+    return group
+
+
+def tape_tile(n: int) -> int:
+    """The edge of the Z-order tiles an image of n rays runs in on the tape path: a root
+    group's square of pixels (16 at least)."""
+    return max(16, math.isqrt(root_group(n)))
+
+
+def _root_groups(n: int, length: int, budget: int):
+    """(rays per group, groups per root) for n rays: `root_group` rays x at most
+    `ROOT_GROUPS`, fewer for long tapes (`length`), so that one root's children fit the
+    budget."""
+    group = root_group(n)
     root_q = min(ROOT_GROUPS, _tape.bucket(-(-n // group), 1),
                  max(1, batch_limit(length, ROOT_SLABS, budget)))
     return group, root_q
