@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -397,17 +398,20 @@ def _choice(o, va, vb):
     return jnp.where((o == MIN) | (o == MAX), pick, jnp.int8(0))
 
 
-def evaluate(tape: Tape, coords, record: bool = False):
+def evaluate(tape: Tape, coords, record: bool = False, index=None):
     """Run a batch of tapes on points, intervals or affine forms.
 
     Args:
-      tape: a batch of tapes ([L, R] arrays, [R] n).
+      tape: a batch of tapes ([L, R] arrays, [R] n); with `index`, a store of tapes
+        ([L, S] arrays) of which region r runs tape index[r].
       coords: `tape.n_vars` coordinates, each a float32 array, an `Interval` or an AF1
         `Affine` form (all with the same noise symbols), broadcastable to [R, P] (all of
         one kind).
       record: interval / affine mode only: also return the min/max choices, int8
         [L, R, P] (1: the first operand is proved to be chosen on that box, 2: the
         second, 0: both possible or not a min/max).
+      index: None, or int32 [R]: each region's tape in the store (regions that share a
+        tape read it in place, without a copy per region).
 
     Returns the program's value [R, P] (an array, an Interval or an Affine), and the
     choices if `record`. Pure; jit it with the tape as an argument (its `opset`/`n_vars`/
@@ -421,6 +425,8 @@ def evaluate(tape: Tape, coords, record: bool = False):
     L, R = tape.op.shape
     if tape.reg is None:
         raise ValueError("the tape has no registers (`allocate`)")
+    view = _View(tape, None if index is None else jnp.asarray(index, jnp.int32))
+    R = view.regions
     K = tape.registers
     cstack = _coordinate_parts(coords, kind, R)
     n_sym = coords[0].n if kind is Affine else 0
@@ -429,10 +435,12 @@ def evaluate(tape: Tape, coords, record: bool = False):
     packing = _Packing(kind, len(cstack), cstack[0].shape[-1], n_sym)
     regs = jnp.zeros((K, R, packing.parts * packing.width), jnp.float32)
     choices = jnp.zeros((L, R, packing.width), jnp.int8) if record else None
-    step = functools.partial(_step, tape, packing, cstack, rows, record)
-    regs, choices = lax.fori_loop(0, jnp.max(tape.n), step, (regs, choices))
-    last = jnp.clip(tape.n - 1, 0, L - 1)
-    result = packing.unpack(regs[jnp.clip(tape.reg[last, 2, rows], 0, K - 1), rows])
+    n = view.n()
+    step = functools.partial(_step, view, n, packing, cstack, rows, record)
+    regs, choices = lax.fori_loop(0, jnp.max(n), step, (regs, choices))
+    last = jnp.clip(n - 1, 0, L - 1)
+    out_reg = tape.reg[last, 2, view.columns(rows)]
+    result = packing.unpack(regs[jnp.clip(out_reg, 0, K - 1), rows])
     if record:
         return result, choices
     return result
@@ -493,16 +501,39 @@ class _Packing:
         return [_select(opset, o, cases)]
 
 
-def _step(tape: Tape, packing: _Packing, cstack, rows, record: bool, i, carry):
+class _View(NamedTuple):
+    """The tapes `evaluate` runs: a batch ([L, R], index None) or a store read at index
+    [R]."""
+
+    tape: Tape
+    index: jax.Array | None
+
+    @property
+    def regions(self) -> int:
+        return self.tape.op.shape[1] if self.index is None else self.index.shape[0]
+
+    def n(self):
+        return self.tape.n if self.index is None else self.tape.n[self.index]
+
+    def row(self, x):
+        """Row x [S] of a field at instruction i, per region [R]."""
+        return x if self.index is None else x[self.index]
+
+    def columns(self, rows):
+        return rows if self.index is None else self.index
+
+
+def _step(view: _View, n, packing: _Packing, cstack, rows, record: bool, i, carry):
     """Instruction i of every tape (`evaluate`'s loop body): read the operands, compute,
     write the result's register; with `record`, store the min/max choices [R, P] at i.
     carry: (register file [K, R, parts x P], choices [L, R, P] or None)."""
     regs, choices = carry
+    tape = view.tape
     K = tape.registers
-    o, a = tape.op[i], tape.a[i]
-    ra, rb, rd = (jnp.clip(tape.reg[i, k], 0, K - 1) for k in range(3))
-    rd = jnp.where(i < tape.n, rd, K)  # past a tape's end: written nowhere
-    imm = tape.imm[i][:, None]
+    o, a = view.row(tape.op[i]), view.row(tape.a[i])
+    ra, rb, rd = (jnp.clip(view.row(tape.reg[i, k]), 0, K - 1) for k in range(3))
+    rd = jnp.where(i < n, rd, K)  # past a tape's end: written nowhere
+    imm = view.row(tape.imm[i])[:, None]
     if record:
         # both operands by one gather into a fresh [2, R, C P] array: read as two
         # slices fused into their readers, the choices' store made XLA copy the
@@ -513,7 +544,7 @@ def _step(tape: Tape, packing: _Packing, cstack, rows, record: bool, i, carry):
     else:
         A, B = packing.unpack(regs[ra, rows]), packing.unpack(regs[rb, rows])
     var = packing.value([c[jnp.clip(a, 0, tape.n_vars - 1), rows] for c in cstack])
-    if tape.op.shape[1] == 1 and len(tape.opset) > 1:
+    if view.regions == 1 and len(tape.opset) > 1:
         out = _one_region_parts(tape.opset, packing.kind, o, A, B, imm, var)
     else:
         rule = _enclosure_cases if packing.kind in (Interval, Affine) else _point_cases

@@ -107,26 +107,30 @@ def _undo_idle_splits(s1, amb, chosen, q, h):
     barely varies along the rays (Prospero as a 3D slab seen down z) multiplies its
     regions by h at every level: 368,560 regions at one level of 128^2 to keep 2,055.
     s1, amb [R, q h]; chosen [L, R, q h]."""
-    R, L = amb.shape[0], chosen.shape[0]
+    R = amb.shape[0]
     idle = jnp.all(amb.reshape(R, q, h), axis=-1, keepdims=True)          # [R, q, 1]
     k = jnp.arange(h)
-    c = chosen.reshape(L, R, q, h)
-    shared = jnp.where(jnp.all(c == c[..., :1], axis=-1, keepdims=True), c[..., :1], 0)
-    chosen = jnp.where(idle[None] & (k == 0), shared.astype(c.dtype), c).reshape(chosen.shape)
+    if chosen is not None:  # None: the children will not be pruned
+        L = chosen.shape[0]
+        c = chosen.reshape(L, R, q, h)
+        shared = jnp.where(jnp.all(c == c[..., :1], axis=-1, keepdims=True), c[..., :1], 0)
+        chosen = jnp.where(idle[None] & (k == 0), shared.astype(c.dtype),
+                           c).reshape(chosen.shape)
     stretched = jnp.broadcast_to(s1.reshape(R, q, h)[..., -1:], (R, q, h))
     s1 = jnp.where(idle & (k == 0), stretched, s1.reshape(R, q, h)).reshape(R, q * h)
     amb = (amb.reshape(R, q, h) & ~(idle & (k > 0))).reshape(R, q * h)
     return s1, amb, chosen
 
 
-@functools.partial(jax.jit, static_argnames=("G", "q", "h", "arithmetic"))
-def _level(tapes, reg, seg, lo, hi, rest, iso, first, G, q, h, arithmetic):
-    """Split every region (R: groups of G rays) into q ray groups x h slabs, classify the
-    children with the parents' tapes in `arithmetic` ("interval": their boxes; "affine":
-    one noise symbol per axis of a group's box, a single ray's piece on one symbol, its
-    parameter); return children, which hold a level, their choices, counts, and `first`
-    ([rays]: the end of each ray's nearest piece proven to hold a root, over every batch
-    so far) updated."""
+@functools.partial(jax.jit, static_argnames=("G", "q", "h", "arithmetic", "record"))
+def _level(tapes, reg, seg, lo, hi, rest, iso, first, G, q, h, arithmetic, record):
+    """Split every region (R: groups of G rays, region r running tape reg["tid"][r] of
+    the store `tapes`) into q ray groups x h slabs, classify the children with the
+    parents' tapes in `arithmetic` ("interval": their boxes; "affine": one noise symbol
+    per axis of a group's box, a single ray's piece on one symbol, its parameter); return
+    children, which hold a level, their choices (`record`: for pruning, else None),
+    counts, and `first` ([rays]: the end of each ray's nearest piece proven to hold a
+    root, over every batch so far) updated."""
     _, _, inside, p, D, fine = seg
     Gc = G // q
     g, s0, s1, valid = _child_slabs(reg, fine, q, h, single=Gc == 1 and q == 1)
@@ -135,16 +139,19 @@ def _level(tapes, reg, seg, lo, hi, rest, iso, first, G, q, h, arithmetic):
     pr, Dr = p[idx], D[idx]
     blo, bhi, valid = _group_boxes(ok, pr, Dr, s0, s1, lo, hi, valid)
     boxes = _child_coordinates(arithmetic, blo, bhi, pr, Dr, s0, s1, rest)
-    f, chosen = chunked_eval(tapes, boxes, True, _BUDGET, _CHUNKS)
+    tid = reg["tid"]
+    f = chunked_eval(tapes, boxes, record, _BUDGET, _CHUNKS, tid)
+    f, chosen = f if record else (f, None)
     if arithmetic == "affine":
         f = aa.to_interval(f)
     amb = valid & _any_level(f, iso)
     if Gc == 1:
-        amb, first = _behind_first_roots(tapes, amb, first, idx, pr, Dr, s0, s1, rest, iso)
+        amb, first = _behind_first_roots(tapes, tid, amb, first, idx, pr, Dr, s0, s1, rest,
+                                         iso)
     if Gc > 1 and h > 1:
         s1, amb, chosen = _undo_idle_splits(s1, amb, chosen, q, h)
     unfinished = amb & ((s1 - s0) > fine[idx[..., 0]])
-    children = dict(g=g, s0=s0, s1=s1)
+    children = dict(g=g, s0=s0, s1=s1, tid=jnp.broadcast_to(tid[:, None], g.shape))
     return children, amb, chosen, jnp.stack([jnp.sum(valid), jnp.sum(amb),
                                               jnp.sum(unfinished)]), first
 
@@ -208,18 +215,19 @@ def _child_coordinates(arithmetic, blo, bhi, pr, Dr, s0, s1, rest):
     return boxes + [aa.as_affine(jnp.broadcast_to(v, s0.shape), 3) for v in rest]
 
 
-def _behind_first_roots(tapes, amb, first, idx, pr, Dr, s0, s1, rest, iso):
+def _behind_first_roots(tapes, tid, amb, first, idx, pr, Dr, s0, s1, rest, iso):
     """Single-ray pieces (rays idx [R, C, 1], lines pr + s Dr [R, C, 1, 3], slabs s0..s1
-    [R, C]): a piece whose ends straddle a level holds a root, so the ray's pieces behind
-    it cannot hold its first hit (t-bisection would never reach them). Returns amb
-    without those pieces and first ([rays]: the end of each ray's nearest proven piece)
-    updated."""
+    [R, C], tapes tid [R] of the store `tapes`): a piece whose ends straddle a level holds
+    a root, so the ray's pieces behind it cannot hold its first hit (t-bisection would
+    never reach them). Returns amb without those pieces and first ([rays]: the end of
+    each ray's nearest proven piece) updated."""
     ray = idx[..., 0]
     R, C = s0.shape
     # both ends in one evaluation ([R, 2 C] points): one evaluator loop, compiled once
     ends = pr[..., 0, None, :] + jnp.stack([s0, s1], -1)[..., None] * Dr[..., 0, None, :]
     ends = ends.reshape(R, 2 * C, 3)
-    f = _point_eval(tapes, ends[..., 0], ends[..., 1], ends[..., 2], rest).reshape(R, C, 2)
+    f = _point_eval(tapes, tid, ends[..., 0], ends[..., 1], ends[..., 2],
+                    rest).reshape(R, C, 2)
     fa, fb = f[..., 0], f[..., 1]
     proven = amb & jnp.any((fa[..., None] - iso) * (fb[..., None] - iso) <= 0, axis=-1)
     n_rays = first.shape[0]
@@ -249,16 +257,16 @@ def _prune_sorted(tapes, choices):
 
 @functools.partial(jax.jit, static_argnames=("length",))
 def _longest_first(tapes, reg, length):
-    """The regions sorted by tape length, longest first, their tapes cut (or padded) to
-    `length` instructions."""
-    order = jnp.argsort(-tapes.n)
-    tapes = _tape.resize(_tape.take_regions(tapes, order), length)
-    return tapes, {k: v[order] for k, v in reg.items()}
+    """The regions sorted by their tapes' length, longest first (the store is not moved),
+    the store's tapes cut (or padded) to `length` instructions."""
+    order = jnp.argsort(-tapes.n[reg["tid"]])
+    return _tape.resize(tapes, length), {k: v[order] for k, v in reg.items()}
 
 
-def _point_eval(tapes, x, y, z, rest):
-    """The tapes at points; `rest`: the coordinates after x, y, z (w, scalar params)."""
-    return chunked_eval(tapes, [x, y, z, *rest], False, _BUDGET, _CHUNKS)
+def _point_eval(tapes, tid, x, y, z, rest):
+    """The tapes tid [n] of the store at points ([n, m] each); `rest`: the coordinates
+    after x, y, z (w, scalar params)."""
+    return chunked_eval(tapes, [x, y, z, *rest], False, _BUDGET, _CHUNKS, tid)
 
 
 def _piece_lines(seg, reg):
@@ -268,19 +276,22 @@ def _piece_lines(seg, reg):
     return p[reg["g"]], D[reg["g"]]
 
 
-def _values(tapes, rest, q):
-    """The tapes' values [n, 1] at points q [n, 3]."""
-    return _point_eval(tapes, q[:, 0, None], q[:, 1, None], q[:, 2, None], rest)
+def _values(tapes, tid, rest, q):
+    """The tapes' (tid [n]) values [n, 1] at points q [n, 3]."""
+    return _point_eval(tapes, tid, q[:, 0, None], q[:, 1, None], q[:, 2, None], rest)
 
 
-def _value_grad(tapes, rest, q):
-    """The tapes' values [n] and gradients [n, 3] at points q [n, 3] (forward mode)."""
-    grads = []
-    for e in range(3):
-        v, d = jax.jvp(lambda q: _values(tapes, rest, q), (q,),
-                       (jnp.zeros_like(q).at[:, e].set(1.0),))
-        grads.append(d[:, 0])
-    return v[:, 0], jnp.stack(grads, axis=-1)
+def _value_grad(tapes, tid, rest, q):
+    """The tapes' values [n] and gradients [n, 3] at points q [n, 3]: forward mode, the
+    three tangents in one pass of the evaluator (`jax.vmap` over them: the value is
+    computed once; three `jvp`s ran the program's loop three times)."""
+    basis = jnp.broadcast_to(jnp.eye(3, dtype=q.dtype)[:, None, :], (3,) + q.shape)
+
+    def along(t):
+        return jax.jvp(lambda q: _values(tapes, tid, rest, q), (q,), (t,))
+
+    v, d = jax.vmap(along, out_axes=(None, 0))(basis)
+    return v[:, 0], jnp.moveaxis(d[..., 0], 0, -1)
 
 
 def _midpoints(seg, reg):
@@ -296,11 +307,11 @@ def _final_checks(tapes, reg, seg, rest, iso, policy):
     "none")."""
     pr, Dr = _piece_lines(seg, reg)
     valid = reg["valid"]
-    fm, grad = _value_grad(tapes, rest, _midpoints(seg, reg))
+    fm, grad = _value_grad(tapes, reg["tid"], rest, _midpoints(seg, reg))
     if policy == "none":
         return fm, grad, valid
-    ends = jnp.stack([_values(tapes, rest, pr + reg[s][:, None] * Dr)[:, 0]
-                      for s in ("s0", "s1")], axis=-1)
+    q = pr[:, None, :] + jnp.stack([reg["s0"], reg["s1"]], -1)[..., None] * Dr[:, None, :]
+    ends = _point_eval(tapes, reg["tid"], q[..., 0], q[..., 1], q[..., 2], rest)  # [n, 2]
     return fm, grad, valid & changes_sign(ends[..., None] - iso)[:, 0]
 
 
@@ -314,7 +325,7 @@ def _final_closer(tapes, reg, seg, rest, iso):
     frac = jnp.arange(CLOSER_PARTS + 1, dtype=jnp.float32) / CLOSER_PARTS
     s = reg["s0"][:, None] + (reg["s1"] - reg["s0"])[:, None] * frac  # [n, m]
     q = pr[:, None, :] + Dr[:, None, :] * s[..., None]
-    f = _point_eval(tapes, q[..., 0], q[..., 1], q[..., 2], rest)  # [n, m]
+    f = _point_eval(tapes, reg["tid"], q[..., 0], q[..., 1], q[..., 2], rest)  # [n, m]
     return reg["valid"] & jnp.any(changes_sign(f[..., None] - iso), axis=-1)
 
 
@@ -326,7 +337,7 @@ def _final_touching(tapes, reg, seg, rest, iso, fm, grad):
     _, Dr = _piece_lines(seg, reg)
     level = iso[jnp.argmin(jnp.abs(fm[:, None] - iso), axis=-1)]
     length = (reg["s1"] - reg["s0"]) * jnp.linalg.norm(Dr, axis=-1)
-    return reg["valid"] & touches(lambda q: _value_grad(tapes, rest, q),
+    return reg["valid"] & touches(lambda q: _value_grad(tapes, reg["tid"], rest, q),
                                   _midpoints(seg, reg), fm, grad, level, length)
 
 
@@ -363,16 +374,15 @@ def _recheck(check, ok, tapes, reg, seg, rest, iso, *per_piece):
         return ok
     size = _tape.bucket(failed.size, 8)
     idx = jnp.asarray(np.pad(failed, (0, size - failed.size), mode="edge").astype(np.int32))
-    sub, sub_reg, sub_rest = _pieces_at(tapes, reg, per_piece, idx)
-    passed = check(sub, sub_reg, seg, rest, iso, *sub_rest)
+    sub_reg, sub_rest = _pieces_at(reg, per_piece, idx)
+    passed = check(tapes, sub_reg, seg, rest, iso, *sub_rest)
     return ok.at[idx].max(passed)
 
 
 @jax.jit
-def _pieces_at(tapes, reg, per_piece, idx):
-    """The final pieces at idx [m]: their tapes, regions and `per_piece` arrays."""
-    return (_tape.take_regions(tapes, idx), {k: v[idx] for k, v in reg.items()},
-            tuple(x[idx] for x in per_piece))
+def _pieces_at(reg, per_piece, idx):
+    """The final pieces at idx [m]: their regions and `per_piece` arrays."""
+    return {k: v[idx] for k, v in reg.items()}, tuple(x[idx] for x in per_piece)
 
 
 @jax.jit
@@ -429,13 +439,13 @@ def _too_big(what: str, need: float, level: int, length: int, budget: int):
 
 
 @functools.partial(jax.jit, static_argnames=("size",))
-def _take(tapes, reg, start, count, size):
+def _take(reg, start, count, size):
     """Regions start .. start + size - 1 of a batch (those past `count` invalid)."""
-    idx = jnp.minimum(start + jnp.arange(size), tapes.op.shape[1] - 1)
+    idx = jnp.minimum(start + jnp.arange(size), reg["g"].shape[0] - 1)
     ok = (start + jnp.arange(size)) < count
     sub = {k: v[idx] for k, v in reg.items()}
     sub["valid"] = sub["valid"] & ok
-    return _tape.take_regions(tapes, idx), sub
+    return sub
 
 
 @functools.partial(jax.jit, static_argnames=("n_rays",))
@@ -547,8 +557,9 @@ def _root_work(tape: Tape, n_roots: int, per_root: int):
     region) for n_roots roots, each `per_root` rays over their whole segments with the
     full tape."""
     roots = dict(g=jnp.arange(n_roots, dtype=jnp.int32), s0=jnp.zeros(n_roots),
-                 s1=jnp.ones(n_roots), valid=jnp.ones(n_roots, bool))
-    return (_tape.take_regions(tape, jnp.zeros(n_roots, jnp.int32)), roots, n_roots, 0,
+                 s1=jnp.ones(n_roots), valid=jnp.ones(n_roots, bool),
+                 tid=jnp.zeros(n_roots, jnp.int32))
+    return (_tape.take_regions(tape, jnp.zeros(1, jnp.int32)), roots, n_roots, 0,
             per_root)
 
 
@@ -575,7 +586,7 @@ def _traverse(run: _Run, work: list, n_pad: int, per_level: dict | None):
         depth = max(depth, level + 1)
         children, amb, chosen, counts, first = _level(
             tapes, reg, run.seg, run.scene.lo, run.scene.hi, run.rest, run.iso, first, G,
-            q, h, box_arithmetic(run.scene.arithmetic))
+            q, h, box_arithmetic(run.scene.arithmetic), _prunes(run, tapes))
         n_valid, n_amb, n_unfinished = (int(c) for c in counts)
         pieces = (_survivors(run, tapes, children, amb, chosen, n_amb, level, h)
                   if n_amb else [])
@@ -601,7 +612,7 @@ def _batch_parts(tapes, reg, count: int, level: int, children: int, budget: int)
                        tapes.length * children, level, tapes.length, budget)
     if count <= limit:
         return None
-    return [_take(tapes, reg, k, count, limit) + (min(limit, count - k),)
+    return [(tapes, _take(reg, k, count, limit), min(limit, count - k))
             for k in range(0, count, limit)]
 
 
@@ -612,18 +623,19 @@ def _survivors(run: _Run, tapes, children, amb, chosen, n_amb: int, level: int,
     real) each, the tapes pruned by the children's own choices (long tapes only, and when
     `run.prune`; tapes of `SHARED_PRUNE_FROM` instructions first by the choices each
     ray group's slabs share) and sorted longest first."""
-    pruning = run.prune and tapes.length > PRUNE_ABOVE
+    pruning = _prunes(run, tapes)
     _check_fits(tapes.length, run.budget, level)
     origin = None
     if pruning and tapes.length >= SHARED_PRUNE_FROM and h > 2:
-        tapes, origin = _shared_prune(tapes, amb, chosen, h, run.budget)
+        tapes, origin = _shared_prune(tapes, children["tid"][:, 0], amb, chosen, h,
+                                      run.budget)
     part = survivor_limit(tapes.length, run.budget)
     size = min(part, _tape.bucket(n_amb, 8, fine=True))
     where = ambiguous_positions(amb, _tape.bucket(n_amb, 8, fine=True))
     pieces = []
     for start in range(0, n_amb, size):
         sub, choices, sub_reg = gather_children(tapes, children, chosen, where, start,
-                                                 n_amb, size, not pruning, origin,
+                                                 n_amb, size, pruning, origin,
                                                  1 if origin is None else h)
         length = sub.length
         if pruning:
@@ -634,13 +646,18 @@ def _survivors(run: _Run, tapes, children, amb, chosen, n_amb: int, level: int,
     return pieces
 
 
+def _prunes(run: _Run, tapes) -> bool:
+    """Whether children of regions running `tapes` get their tapes pruned."""
+    return run.prune and tapes.length > PRUNE_ABOVE
+
+
 def _check_fits(length: int, budget: int, level: int):
     if survivor_limit(length, budget) == 0:
         raise _too_big("one region's tape", BYTES_PER_SURVIVOR_INSTRUCTION * length, level,
                        length, budget)
 
 
-def _shared_prune(tapes, amb, chosen, h: int, budget: int):
+def _shared_prune(tapes, tid, amb, chosen, h: int, budget: int):
     """The first of two pruning stages for children of long tapes: each ray group's tape
     (its parent's) pruned by the choices that all its ambiguous slabs share. A group's h
     slabs share most choices (Prospero's slab: all, it does not read z), so each slab is
@@ -648,12 +665,13 @@ def _shared_prune(tapes, amb, chosen, h: int, budget: int):
     against 7,871 instructions, 1.75 s of a 6.3 s call). amb [R, C], chosen [L, R, C]
     (C = q h, group-major). Returns the groups' tapes [L', R q] (no registers: they are
     pruned again) and the origins of their instructions [L', R q] (`gather_children`
-    reads each child's choices there)."""
+    reads each child's choices there). tid [R]: each parent's tape in the store
+    `tapes`."""
     L, R, C = chosen.shape
     groups = R * (C // h)
     consensus, busy = _consensus(amb, chosen, h)
     part = min(survivor_limit(L, budget), _tape.bucket(groups, 1))
-    parts = [_group_prune(tapes, consensus, busy, start, part, C // h)
+    parts = [_group_prune(tapes, tid, consensus, busy, start, part, C // h)
              for start in range(0, groups, part)]
     length = max(_tape.longest_bucket(t) for t, _ in parts)
     return _joined_groups(parts, length, groups)
@@ -675,12 +693,12 @@ def _consensus(amb, chosen, h):
 
 
 @functools.partial(jax.jit, static_argnames=("size", "q"))
-def _group_prune(tapes, consensus, busy, start, size, q):
+def _group_prune(tapes, tid, consensus, busy, start, size, q):
     """Groups start .. start + size - 1 (past the last: the last again): their parent's
     tape pruned by their shared choices (idle groups to one instruction), without
     registers, and the origins of the pruned instructions."""
     idx = jnp.minimum(start + jnp.arange(size), consensus.shape[1] - 1)
-    sub = _tape.take_regions(dataclasses.replace(tapes, reg=None), idx // q)
+    sub = _tape.take_regions(dataclasses.replace(tapes, reg=None), tid[idx // q])
     sub = dataclasses.replace(sub, n=jnp.where(busy[idx], sub.n, 1))
     return _tape.prune(sub, consensus[:, idx], origins=True, registers=False)
 
@@ -702,7 +720,7 @@ def _count_level(per_level: dict, level: int, rays_per_region: int, n_valid: int
                                            kept=0, lengths=[]))
     row["regions"] += n_valid
     row["kept"] += n_amb
-    row["lengths"].extend(np.asarray(sub.n)[:c] for sub, _, c in pieces)
+    row["lengths"].extend(np.asarray(sub.n)[np.asarray(r["tid"])[:c]] for sub, r, c in pieces)
 
 
 def _level_stats(row):

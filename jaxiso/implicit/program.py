@@ -160,12 +160,22 @@ def _lead(c):
     return c.lo if isinstance(c, Interval) else c.center if isinstance(c, Affine) else c
 
 
-def chunked_eval(tapes, coords, record, budget, min_chunks=1):
+# Up to this many instructions x regions a store's tapes are gathered once before an
+# evaluation rather than at every step: a few regions of a long tape (the roots: 4 x
+# 8,192) paid the step's gathers' fixed cost 7,871 times (slab 1024^2 root 0.45 -> 0.96 s).
+_GATHER_ONCE = 2**20
+
+
+def chunked_eval(tapes, coords, record, budget, min_chunks=1, index=None):
     """`_tape.evaluate` over region chunks so that its working set (the register file,
     and the choices of `record`) stays within `budget` elements (R is a power of two), in
     at least `min_chunks` chunks (each runs as many instructions as its longest tape:
-    regions sorted by tape length gain)."""
-    L, R = tapes.op.shape
+    regions sorted by tape length gain). `index` (None or [R]): `tapes` is a store and
+    region r runs tape index[r] (`_tape.evaluate`); the chunks split the index."""
+    L = tapes.length
+    if index is not None and index.shape[0] * L <= _GATHER_ONCE:
+        tapes, index = _tape.take_regions(tapes, index), None
+    R = tapes.op.shape[1] if index is None else index.shape[0]
     P = jnp.broadcast_shapes(*[jnp.shape(_lead(c)) for c in coords])[-1]
     # an affine register holds n + 4 parts (form and bounds), an interval 2, a point 1
     parts = (coords[0].n + 4 if isinstance(coords[0], Affine)
@@ -176,7 +186,7 @@ def chunked_eval(tapes, coords, record, budget, min_chunks=1):
                                      chunks < min_chunks):
         chunks *= 2
     if chunks == 1:
-        return _tape.evaluate(tapes, coords, record)
+        return _tape.evaluate(tapes, coords, record, index)
 
     def split_coord(x):
         x = jnp.broadcast_to(x, (R, 1)) if jnp.ndim(x) == 0 else x
@@ -186,14 +196,13 @@ def chunked_eval(tapes, coords, record, budget, min_chunks=1):
     def split_prog(x):  # [L, ..., R] -> [chunks, L, ..., R / chunks]
         return jnp.moveaxis(x.reshape(x.shape[:-1] + (chunks, R // chunks)), -2, 0)
 
-    ct = _tape.map_program(tapes, split_prog, tapes.n.reshape(chunks, R // chunks))
     cc = jax.tree_util.tree_map(split_coord, coords)
-
-    def one(args):
-        t, c = args
-        return _tape.evaluate(t, c, record)
-
-    out = jax.lax.map(one, (ct, cc))
+    if index is None:
+        ct = _tape.map_program(tapes, split_prog, tapes.n.reshape(chunks, R // chunks))
+        out = jax.lax.map(lambda args: _tape.evaluate(args[0], args[1], record), (ct, cc))
+    else:
+        out = jax.lax.map(lambda args: _tape.evaluate(tapes, args[1], record, args[0]),
+                          (index.reshape(chunks, R // chunks), cc))
     if record:
         val, ch = out
         ch = jnp.moveaxis(ch, 0, 1).reshape((L, R) + ch.shape[3:])
@@ -209,31 +218,38 @@ def ambiguous_positions(amb, size):
     return jnp.asarray(np.pad(flat, (0, size - flat.size)).astype(np.int32))
 
 
-@functools.partial(jax.jit, static_argnames=("size", "registers", "h"))
-def gather_children(tapes, children, chosen, where, start, count, size, registers=True,
+@functools.partial(jax.jit, static_argnames=("size", "copy", "h"))
+def gather_children(tapes, children, chosen, where, start, count, size, copy=True,
                     origin=None, h=1):
-    """Children where[start:start + size] (those past `count` invalid): their regions,
-    their parents' tapes and their own min/max choices ([L, size]). `registers=False`
-    leaves the tapes' registers behind (for tapes about to be pruned, which allocates
-    them anew: 3 of the 7 arrays a gather would move). With `origin` ([L', groups]),
-    `tapes` are the children's groups' ([L', groups]: a group is h consecutive children
-    of a parent, its tape pruned by their shared choices, `prune(..., origins=True)`)
-    and the choices are read at each group instruction's origin ([L', size])."""
-    if not registers:
-        tapes = dataclasses.replace(tapes, reg=None)
-    C = chosen.shape[2]
+    """Children where[start:start + size] (those past `count` invalid) of regions whose
+    tapes are `tapes` (a store: region r runs tape children["tid"][r]): their regions
+    (with "tid", each child's tape in the store returned), that store, and their own
+    min/max choices ([L, size]).
+
+    `copy=False`: the children share their parents' tapes (the store is `tapes`, no
+    choices: None). `copy=True`: each child gets its parent's tape, without registers
+    (about to be pruned, which allocates them anew), in a store of its own ([L, size],
+    tid = position); with `origin` ([L', groups]), `tapes` are the children's groups'
+    ([L', groups]: a group is h consecutive children of a parent, its tape pruned by
+    their shared choices, `prune(..., origins=True)`) and the choices are read at each
+    group instruction's origin ([L', size])."""
+    C = children["g"].shape[1]
     k = start + jnp.arange(size)
     idx = where[jnp.minimum(k, where.shape[0] - 1)]
     ok = k < count
     r, c = idx // C, idx % C
     reg = {key: v.reshape(-1)[idx] for key, v in children.items()}
     reg["valid"] = ok
+    if not copy:
+        return tapes, None, reg
+    tapes = dataclasses.replace(tapes, reg=None)
     if origin is None:
-        parent, choices = _tape.take_regions(tapes, r), chosen[:, r, c]
+        parent, choices = _tape.take_regions(tapes, reg["tid"]), chosen[:, r, c]
     else:
         g = r * (C // h) + c // h
         parent, choices = _tape.take_regions(tapes, g), chosen[origin[:, g], r, c]
     parent = dataclasses.replace(parent, n=jnp.where(ok, parent.n, 1))
+    reg["tid"] = jnp.arange(size, dtype=jnp.int32)
     return parent, choices, reg
 
 
