@@ -30,9 +30,12 @@ Rays that share a group should be near each other (`render` orders them in Z-ord
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import dataclasses
 import functools
 import math
+import os
 from typing import NamedTuple
 
 import jax
@@ -123,21 +126,23 @@ def _undo_idle_splits(s1, amb, chosen, q, h):
 
 
 @functools.partial(jax.jit, static_argnames=("G", "q", "h", "arithmetic", "record"))
-def _level(tapes, reg, seg, lo, hi, rest, iso, first, G, q, h, arithmetic, record):
+def _level(tapes, reg, seg, hull, lo, hi, rest, iso, first, G, q, h, arithmetic, record):
     """Split every region (R: groups of G rays, region r running tape reg["tid"][r] of
     the store `tapes`) into q ray groups x h slabs, classify the children with the
     parents' tapes in `arithmetic` ("interval": their boxes; "affine": one noise symbol
     per axis of a group's box, a single ray's piece on one symbol, its parameter); return
     children, which hold a level, their choices (`record`: for pruning, else None),
     counts, and `first` ([rays]: the end of each ray's nearest piece proven to hold a
-    root, over every batch so far) updated."""
+    root, over every batch so far) updated. hull: `_group_hulls` of the children's
+    groups (G / q rays each)."""
     _, _, inside, p, D, fine = seg
     Gc = G // q
     g, s0, s1, valid = _child_slabs(reg, fine, q, h, single=Gc == 1 and q == 1)
-    idx = g[..., None] * Gc + jnp.arange(Gc)                  # [R, C, Gc]
-    ok = inside[idx]
-    pr, Dr = p[idx], D[idx]
-    blo, bhi, valid = _group_boxes(ok, pr, Dr, s0, s1, lo, hi, valid)
+    blo, bhi, valid = _group_boxes(hull, g, s0, s1, lo, hi, valid)
+    idx = pr = Dr = None
+    if Gc == 1:  # single rays: their lines
+        idx = g[..., None]                                     # [R, C, 1]
+        pr, Dr = p[idx], D[idx]
     boxes = _child_coordinates(arithmetic, blo, bhi, pr, Dr, s0, s1, rest)
     tid = reg["tid"]
     f = chunked_eval(tapes, boxes, record, _BUDGET, _CHUNKS, tid)
@@ -150,7 +155,7 @@ def _level(tapes, reg, seg, lo, hi, rest, iso, first, G, q, h, arithmetic, recor
                                          iso)
     if Gc > 1 and h > 1:
         s1, amb, chosen = _undo_idle_splits(s1, amb, chosen, q, h)
-    unfinished = amb & ((s1 - s0) > fine[idx[..., 0]])
+    unfinished = amb & ((s1 - s0) > fine[g * Gc])
     children = dict(g=g, s0=s0, s1=s1, tid=jnp.broadcast_to(tid[:, None], g.shape))
     return children, amb, chosen, jnp.stack([jnp.sum(valid), jnp.sum(amb),
                                               jnp.sum(unfinished)]), first
@@ -179,20 +184,40 @@ def _child_slabs(reg, fine, q, h, single):
     return g, s0, s1, valid
 
 
-def _group_boxes(ok, pr, Dr, s0, s1, lo, hi, valid):
-    """The boxes blo, bhi [R, C, 3] of the children's rays (ok, inside the box: [R, C, Gc];
-    lines pr + s Dr: [R, C, Gc, 3]) over their slabs s0..s1 [R, C]: the hull of the
-    slab ends, padded outward, clipped to [lo, hi]; valid [R, C] kept where a ray is
-    inside and the box is not empty."""
-    a = pr + s0[..., None, None] * Dr
-    b = pr + s1[..., None, None] * Dr
+@functools.partial(jax.jit, static_argnames=("size",))
+def _group_hulls(seg, size):
+    """Per group of `size` consecutive rays (those inside the box): the hulls of their
+    segments' entry points p and exit points p + D (lo, hi [groups, 3] each), and whether
+    any ray is inside (bool [groups])."""
+    _, _, inside, p, D, _ = seg
+    ok = inside.reshape(-1, size, 1)
     big = jnp.float32(jnp.inf)
-    blo = jnp.min(jnp.where(ok[..., None], jnp.minimum(a, b), big), axis=-2)
-    bhi = jnp.max(jnp.where(ok[..., None], jnp.maximum(a, b), -big), axis=-2)
-    pad = _PAD * jnp.maximum(jnp.abs(blo), jnp.abs(bhi))
+    hulls = []
+    for x in (p, p + D):
+        x = x.reshape(-1, size, 3)
+        hulls += [jnp.min(jnp.where(ok, x, big), axis=1), jnp.max(jnp.where(ok, x, -big), axis=1)]
+    return (*hulls, jnp.any(ok[..., 0], axis=1))
+
+
+def _group_boxes(hull, g, s0, s1, lo, hi, valid):
+    """The boxes blo, bhi [R, C, 3] of the children (ray groups g [R, C]) over their
+    slabs s0..s1 [R, C], padded outward, clipped to [lo, hi]; valid [R, C] kept where a
+    ray is inside and the box is not empty. On a slab a ray's point is (1 - s) p + s e
+    (entry p, exit e), so the group's points lie between (1 - s) of its entries' hull and
+    s of its exits' (`_group_hulls`), exact at the segments' ends and for parallel rays.
+    Gathering each child's rays instead cost the slab's 1024^2 root 840 MB of
+    temporaries (its 16 slabs share the rays of a group)."""
+    plo, phi, elo, ehi, any_inside = (x[g] for x in hull)
+    s0, s1 = s0[..., None], s1[..., None]
+    blo = jnp.minimum((1 - s0) * plo + s0 * elo, (1 - s1) * plo + s1 * elo)
+    bhi = jnp.maximum((1 - s0) * phi + s0 * ehi, (1 - s1) * phi + s1 * ehi)
+    # the rounding of the blends and of e = p + D, relative to the ends' magnitude
+    size = jnp.maximum(jnp.maximum(jnp.abs(plo), jnp.abs(phi)),
+                       jnp.maximum(jnp.abs(elo), jnp.abs(ehi)))
+    pad = 2 * _PAD * jnp.where(any_inside[..., None], size, 0.0)
     blo = jnp.maximum(blo - pad, lo)
     bhi = jnp.minimum(bhi + pad, hi)
-    return blo, bhi, valid & jnp.any(ok, axis=-1) & jnp.all(blo <= bhi, axis=-1)
+    return blo, bhi, valid & any_inside & jnp.all(blo <= bhi, axis=-1)
 
 
 def _child_coordinates(arithmetic, blo, bhi, pr, Dr, s0, s1, rest):
@@ -203,7 +228,7 @@ def _child_coordinates(arithmetic, blo, bhi, pr, Dr, s0, s1, rest):
     if arithmetic == "interval":
         boxes = [Interval(blo[..., c], bhi[..., c]) for c in range(3)]
         return boxes + [Interval(v, v) for v in rest]
-    if pr.shape[-2] == 1:
+    if pr is not None:
         # one ray's piece is exactly affine in its one parameter: one noise symbol
         boxes = ray_boxes(pr[..., 0, :], Dr[..., 0, :], s0, s1, "affine")
         return boxes + [aa.as_affine(jnp.broadcast_to(v, s0.shape), 1) for v in rest]
@@ -263,10 +288,10 @@ def _longest_first(tapes, reg, length):
     return _tape.resize(tapes, length), {k: v[order] for k, v in reg.items()}
 
 
-def _point_eval(tapes, tid, x, y, z, rest):
+def _point_eval(tapes, tid, x, y, z, rest, budget=_BUDGET):
     """The tapes tid [n] of the store at points ([n, m] each); `rest`: the coordinates
-    after x, y, z (w, scalar params)."""
-    return chunked_eval(tapes, [x, y, z, *rest], False, _BUDGET, _CHUNKS, tid)
+    after x, y, z (w, scalar params); `budget`: the evaluator's elements."""
+    return chunked_eval(tapes, [x, y, z, *rest], False, budget, _CHUNKS, tid)
 
 
 def _piece_lines(seg, reg):
@@ -276,9 +301,10 @@ def _piece_lines(seg, reg):
     return p[reg["g"]], D[reg["g"]]
 
 
-def _values(tapes, tid, rest, q):
+def _values(tapes, tid, rest, q, budget=_BUDGET):
     """The tapes' (tid [n]) values [n, 1] at points q [n, 3]."""
-    return _point_eval(tapes, tid, q[:, 0, None], q[:, 1, None], q[:, 2, None], rest)
+    return _point_eval(tapes, tid, q[:, 0, None], q[:, 1, None], q[:, 2, None], rest,
+                       budget)
 
 
 def _value_grad(tapes, tid, rest, q):
@@ -288,7 +314,8 @@ def _value_grad(tapes, tid, rest, q):
     basis = jnp.broadcast_to(jnp.eye(3, dtype=q.dtype)[:, None, :], (3,) + q.shape)
 
     def along(t):
-        return jax.jvp(lambda q: _values(tapes, tid, rest, q), (q,), (t,))
+        # the evaluator's budget shared by the value and its three tangents
+        return jax.jvp(lambda q: _values(tapes, tid, rest, q, _BUDGET // 4), (q,), (t,))
 
     v, d = jax.vmap(along, out_axes=(None, 0))(basis)
     return v[:, 0], jnp.moveaxis(d[..., 0], 0, -1)
@@ -372,11 +399,16 @@ def _recheck(check, ok, tapes, reg, seg, rest, iso, *per_piece):
     failed = np.flatnonzero(np.asarray(reg["valid"] & ~ok))
     if failed.size == 0:
         return ok
-    size = _tape.bucket(failed.size, 8)
+    size = _tape.bucket(failed.size, _RECHECK_MIN)
     idx = jnp.asarray(np.pad(failed, (0, size - failed.size), mode="edge").astype(np.int32))
     sub_reg, sub_rest = _pieces_at(reg, per_piece, idx)
     passed = check(tapes, sub_reg, seg, rest, iso, *sub_rest)
     return ok.at[idx].max(passed)
+
+
+# Failed pieces are rechecked in batches of at least this many (padded): one compiled
+# shape for the usual handful (each new shape compiled the checks for ~1.3 s)
+_RECHECK_MIN = 1024
 
 
 @jax.jit
@@ -477,7 +509,7 @@ def intersect_rays(scene, tape: Tape, rays: Rays, t_min, t_max, stats: dict | No
     padded, t_min, t_max = _padded_rays(rays, t_min, t_max, n_pad)
     seg = _segments(padded, scene.lo, scene.hi, t_min, t_max, scene.eps)
     run = _Run(scene, seg, scene.isovalues, _rest_coordinates(scene, tape.n_vars), root_q,
-               group, budget, prune)
+               group, budget, prune, {})
     per_level = None if stats is None else {}
     found, batches, depth = _traverse(run, [_root_work(tape, n_pad // per_root, per_root)],
                                       n_pad, per_level)
@@ -500,6 +532,7 @@ class _Run(NamedTuple):
     group: int  # rays per root group
     budget: int
     prune: bool
+    hulls: dict  # rays per group -> `_group_hulls`, filled as levels reach it
 
 
 def root_group(n: int) -> int:
@@ -575,6 +608,7 @@ def _traverse(run: _Run, work: list, n_pad: int, per_level: dict | None):
     value = jnp.zeros(n_pad, jnp.float32)
     gradient = jnp.zeros((n_pad, 3), jnp.float32)
     batches = depth = 0
+    heap = _Heap()
     while work:
         tapes, reg, count, level, G = work.pop()
         q, h = _split(level, run.root_q, run.group)
@@ -584,9 +618,13 @@ def _traverse(run: _Run, work: list, n_pad: int, per_level: dict | None):
             continue
         batches += 1
         depth = max(depth, level + 1)
+        Gc = G // q
+        if Gc not in run.hulls:
+            run.hulls[Gc] = _group_hulls(run.seg, Gc)
         children, amb, chosen, counts, first = _level(
-            tapes, reg, run.seg, run.scene.lo, run.scene.hi, run.rest, run.iso, first, G,
-            q, h, box_arithmetic(run.scene.arithmetic), _prunes(run, tapes))
+            tapes, reg, run.seg, run.hulls[Gc], run.scene.lo, run.scene.hi, run.rest,
+            run.iso, first, G, q, h, box_arithmetic(run.scene.arithmetic),
+            _prunes(run, tapes))
         n_valid, n_amb, n_unfinished = (int(c) for c in counts)
         pieces = (_survivors(run, tapes, children, amb, chosen, n_amb, level, h)
                   if n_amb else [])
@@ -599,6 +637,8 @@ def _traverse(run: _Run, work: list, n_pad: int, per_level: dict | None):
                 best, value, gradient = _merge(best, value, gradient, found, n_pad)
             else:
                 work.append((sub, sub_reg, c, level + 1, G // q))
+        del children, amb, chosen, pieces
+        heap.batch_done()
     return (best, value, gradient), batches, depth
 
 
@@ -711,6 +751,48 @@ def _joined_groups(parts, length, groups):
     tapes = jax.tree_util.tree_map(lambda *x: jnp.concatenate(x, axis=-1)[..., :groups],
                                    *tapes)
     return tapes, jnp.concatenate([o[:length] for _, o in parts], axis=-1)[:, :groups]
+
+
+@functools.cache
+def _malloc_trim():
+    """glibc's malloc_trim, or None (another C library)."""
+    try:
+        trim = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return None
+    trim.argtypes = [ctypes.c_size_t]
+    return trim
+
+
+def _resident_bytes() -> int | None:
+    """This process's resident memory (Linux), or None."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+class _Heap:
+    """Hands the heap's free pages back to the system when the process has grown by
+    `TRIM_GROWTH` bytes since the last time. The batches' buffers (hundreds of MB, freed
+    by XLA) otherwise stay resident in glibc's heaps: the slab at 1024^2 peaked at 2.79
+    GB; 1.85 GB with a trim after every batch, which cost 5% of the call (the next
+    batch's buffers are fresh pages again); 1.97 GB at 1-2% with this rule."""
+
+    TRIM_GROWTH = 2**28
+
+    def __init__(self):
+        self.floor = _resident_bytes()
+
+    def batch_done(self):
+        trim = _malloc_trim()
+        now = _resident_bytes()
+        if trim is None or (now is not None and self.floor is not None
+                            and now < self.floor + self.TRIM_GROWTH):
+            return
+        trim(0)
+        self.floor = _resident_bytes()
 
 
 def _count_level(per_level: dict, level: int, rays_per_region: int, n_valid: int,
