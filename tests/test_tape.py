@@ -108,6 +108,35 @@ def test_pruned_tapes_give_the_same_values_in_their_region():
     assert np.all(np.asarray(g.hi) <= np.asarray(f.hi) + 1e-6)
 
 
+def test_a_store_read_through_an_index_equals_the_gathered_tapes():
+    """`evaluate(store, coords, index=)` (regions reading their tapes in place, as the tape
+    path's children that are not pruned) gives what the tapes gathered per region give:
+    points, and intervals with their min/max choices; and `chunked_eval` splits the index
+    into chunks the same way."""
+    R = 16
+    tape, rng, blo, bhi, coords, batch, f, chosen = _csg40_choices(4, R)
+    store = jax.jit(_tape.prune)(batch, chosen[:, :, 0])  # R tapes of different lengths
+    ix = rng.integers(0, R, 48).astype(np.int32)
+    index = jnp.asarray(ix)
+    own = _tape.take_regions(store, index)
+    u = rng.uniform(size=(48, 8, 3)).astype(np.float32)
+    q = (blo[ix][:, None] + u * (bhi - blo)[ix][:, None]).astype(np.float32)
+    pts = [jnp.asarray(q[..., k]) for k in range(3)] + [jnp.float32(0)]
+    ev = jax.jit(_tape.evaluate, static_argnames="record")
+    np.testing.assert_array_equal(np.asarray(ev(store, pts, index=index)),
+                                  np.asarray(ev(own, pts)))
+    boxes = [ji.Interval(jnp.asarray(blo[ix][:, None, k]), jnp.asarray(bhi[ix][:, None, k]))
+             for k in range(3)] + [ji.Interval(jnp.float32(0), jnp.float32(0))]
+    a, ca = ev(store, boxes, record=True, index=index)
+    b, cb = ev(own, boxes, record=True)
+    np.testing.assert_array_equal(np.asarray(a.lo), np.asarray(b.lo))
+    np.testing.assert_array_equal(np.asarray(a.hi), np.asarray(b.hi))
+    np.testing.assert_array_equal(np.asarray(ca), np.asarray(cb))
+    chunked = jax.jit(lambda t, c, i: P.chunked_eval(t, c, False, 2**8, 4, i))
+    np.testing.assert_array_equal(np.asarray(chunked(store, pts, index)),
+                                  np.asarray(ev(own, pts)))
+
+
 def test_pruning_in_two_stages_equals_pruning_at_once():
     """Pruning by choices a group shares, then by one region's own on the shorter tape
     (mapped through `prune(..., origins=True)`), gives the tape one pruning gives; and
