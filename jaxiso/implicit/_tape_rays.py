@@ -5,18 +5,19 @@ more) run here instead of inlining f's interval extension into XLA (whose compil
 memory grow with the program). Same answer as t-bisection, found breadth-first:
 
 * A region is a group of consecutive rays (a power of 4 of them) and a slab [s0, s1] of
-  each ray's own segment in the box (p + s D, s in [0, 1]). Its box is the hull of the
-  group's slab end points (each ray's slab is a line piece, so the hull of the ends holds
-  it), padded outward.
+  each ray's own segment in the box (p + s D, s in [0, 1]). Its box blends the hulls of
+  the group's entry points p and exit points p + D at the slab's ends (a ray's point at s
+  is (1 - s) p + s (p + D)), padded outward.
 * Level by level every surviving region splits into 4 ray groups x 2 slabs (the root,
-  one region over all rays, into `ROOT_GROUP`-ray groups x `ROOT_SLABS` slabs), down to
+  one region over all rays, into `root_group(n)`-ray groups x `ROOT_SLABS` slabs), down to
   single rays, then quarters its slab until a piece is at most eps long: the pieces
   t-bisection ends on (dyadic fractions of the segment, Eq. 6.19). Each child is
   classified with its parent's tape in the scene's arithmetic (interval, or affine: one
   noise symbol per axis of a group's box, a single ray's piece exactly on one symbol, its
   parameter); a child whose enclosure holds no isovalue is dropped, the others are
   compacted (bucketed sizes) and get their parent's tape pruned by their own min/max
-  choices.
+  choices; once tapes are short (`PRUNE_ABOVE`) children read their parent's tape in
+  place (a batch's tapes are a store, each region holds its tape's index, "tid").
 * The final pieces are verified like the straight path's (`ImplicitSurface.verify`:
   a sign change of f - iso between the piece's ends, or the first-order distance at its
   midpoint), and each ray keeps its nearest; value and gradient (normal) come from the
