@@ -28,6 +28,10 @@ ACTIVATIONS = {
                    lambda h: np.where(h > 0, h, 0.01 * h)),
     "softsign_where": (lambda h: jnp.where(h < 0, h / (1.0 - h), h / (1.0 + h)),
                        jax.nn.soft_sign, lambda h: h / (1.0 + np.abs(h))),
+    "relu_where": (lambda h: jnp.where(h > 0, h, 0.0), jax.nn.relu,
+                   lambda h: np.where(h > 0, h, 0.0)),
+    "clamp_where": (lambda h: jnp.where(h > 0.5, 0.5, jnp.where(h < -0.5, -0.5, h)),
+                    lambda h: jnp.clip(h, -0.5, 0.5), lambda h: np.clip(h, -0.5, 0.5)),
     "huber": (lambda h: jnp.where(jnp.abs(h) < 1.0, 0.5 * h * h, jnp.abs(h) - 0.5),
               lambda h: jnp.where(jnp.abs(h) < 1.0, 0.5 * h * h, jnp.abs(h) - 0.5),
               lambda h: np.where(np.abs(h) < 1.0, 0.5 * h * h, np.abs(h) - 0.5)),
@@ -201,3 +205,60 @@ def test_bounds_pass_through_sums_and_constants():
     assert float(m.err) == 0.0 and float(aa.to_interval(m).hi) <= 0.0
     c = aa.as_affine(jnp.float32(3.0), 1)
     assert float(c.lo) == 3.0 == float(c.hi)
+
+
+# (written with where, the same with maximum / minimum): the cases are the compared
+# operands, on either side, with strict or loose comparisons, constants or forms
+EXTREMA = [
+    (lambda h, g: jnp.where(h > 0, h, 0.0), lambda h, g: jnp.maximum(h, 0.0)),
+    (lambda h, g: jnp.where(h < 0, 0.0, h), lambda h, g: jnp.maximum(h, 0.0)),
+    (lambda h, g: jnp.where(0.0 >= h, 0, h), lambda h, g: jnp.maximum(h, 0.0)),
+    (lambda h, g: jnp.where(h >= 0.25, h, 0.25), lambda h, g: jnp.maximum(h, 0.25)),
+    (lambda h, g: jnp.where(h > 0.5, 0.5, h), lambda h, g: jnp.minimum(h, 0.5)),
+    (lambda h, g: jnp.where(h <= g, h, g), lambda h, g: jnp.minimum(h, g)),
+    (lambda h, g: jnp.where(g < h, h, g), lambda h, g: jnp.maximum(g, h)),  # max(u, v)
+]
+
+
+@pytest.mark.parametrize("arithmetic", ["interval", "affine"])
+@pytest.mark.parametrize("k", range(len(EXTREMA)))
+def test_a_where_of_its_compared_operands_is_their_max_or_min(k, arithmetic):
+    """``where(h > 0, h, 0)`` is relu and ``where(h > c, c, h)`` a clamp: planned as the
+    max or min of the compared operands (`_branches.extremum`), they get the max / min
+    rule's enclosure exactly, in a network (vectors, the scalar case broadcast inside
+    ``_where``) and on scalars; the relu spelled with where ran 8x slower than
+    `jnp.maximum` through the default call when it went through the selection rule."""
+    spelled, extremum = EXTREMA[k]
+    layers = _layers(11, 3, 8)
+
+    def net(act):
+        def f(x, y, z):
+            h = jnp.stack([x, y, z])
+            for i, (A, b) in enumerate(layers):
+                h = (act(h, 0.3 * h[::-1]) if i else h) @ A + b
+            return h[0]
+        return f
+
+    def scalar(act):
+        return lambda x, y, z: act(x - 0.3 * y, z * y)
+
+    boxes = _boxes(12, 32, 0.2)
+    for make in (net, scalar):
+        a = ji.extend(make(spelled), arithmetic)(*boxes)
+        b = ji.extend(make(extremum), arithmetic)(*boxes)
+        for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_a_where_of_other_cases_is_no_extremum():
+    """Only the compared operands themselves make a max or min."""
+    cases = [lambda h: jnp.where(h > 0, 0.5 * h, 0.0), lambda h: jnp.where(h > 0, h, 0.1),
+             lambda h: jnp.where(h > 0, 0.0, h), lambda h: jnp.where(h > 0, h, -h)]
+    found = []
+    for fn in cases:
+        jaxpr = jax.make_jaxpr(fn)(jnp.ones(4, jnp.float32)).jaxpr
+        found += [sel.extremum for sel in _branches.plan(jaxpr, _call_body).selections.values()]
+    assert found and found.count(None) == len(found) - 1  # where(h > 0, 0, h): min(h, 0)
+    jaxpr = jax.make_jaxpr(cases[2])(jnp.ones(4, jnp.float32)).jaxpr
+    (sel,) = _branches.plan(jaxpr, _call_body).selections.values()
+    assert sel.extremum == "min"

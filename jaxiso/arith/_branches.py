@@ -26,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 
 import jax.numpy as jnp
+import numpy as np
 from jax.extend import core as jcore
 
 from . import _affine as aa
@@ -72,6 +73,7 @@ class Selection:
     predicate: int  # the position of the comparison's result among the operands
     inputs: frozenset
     elementwise: bool
+    extremum: str | None = None  # "max" / "min": the cases are the compared operands
 
 
 # lax primitives that act element by element (with operands of one shape or scalars)
@@ -88,6 +90,8 @@ def _elementwise(eqn, call_body) -> bool:
     """Does `eqn` act element by element (a call: every equation of its body)?"""
     if eqn.primitive.name in ELEMENTWISE:
         return True
+    if eqn.primitive.name == "broadcast_in_dim":  # a scalar: each element reads it
+        return all(v.aval.shape == () for v in eqn.invars)
     body = call_body(eqn)
     if body is None:
         return False
@@ -115,15 +119,24 @@ def _select_positions(eqn, call_body):
     if body is None:
         return None
     inner = body.jaxpr if isinstance(body, jcore.ClosedJaxpr) else body
-    if len(inner.eqns) != 1 or inner.eqns[0].primitive.name != "select_n":
+    if not inner.eqns or inner.eqns[-1].primitive.name != "select_n":
         return None
-    sel = inner.eqns[0]
+    *prepare, sel = inner.eqns
     if len(sel.invars) != 3 or list(inner.outvars) != list(sel.outvars):
         return None
     where = {v: k for k, v in enumerate(inner.invars)}
+    for e in prepare:  # a where's scalar case converted and broadcast to the shape
+        if (e.primitive.name not in _OPERAND_PREPARATION or len(e.invars) != 1
+                or not isinstance(e.invars[0], jcore.Var) or e.invars[0] not in where):
+            return None
+        where[e.outvars[0]] = where[e.invars[0]]
     if not all(isinstance(v, jcore.Var) and v in where for v in sel.invars):
         return None
     return where[sel.invars[0]], {where[sel.invars[1]]: 0, where[sel.invars[2]]: 1}
+
+
+# equations a call to ``_where`` applies to an operand before its select_n
+_OPERAND_PREPARATION = frozenset({"convert_element_type", "broadcast_in_dim"})
 
 
 def _elementwise_selection(eqn, call_body) -> bool:
@@ -200,8 +213,37 @@ def plan(jaxpr, call_body) -> Plan:
                 eqns[k].primitive.name, u, v, tuple(made), k, pred_pos,
                 _inputs(eqns, steps, others + [u, v]),
                 all(_elementwise(eqns[j], call_body) for j in steps)
-                and _elementwise_selection(eqn, call_body))
+                and _elementwise_selection(eqn, call_body),
+                extremum(eqns[k].primitive.name, u, v, eqn, cases))
     return Plan(selections, _unneeded(jaxpr, selections))
+
+
+def extremum(comparison: str, u, v, eqn, cases) -> str | None:
+    """"max" or "min" when the selection takes exactly its compared operands, shaped as
+    its result (``where(h > 0, h, 0)`` is relu, ``where(x > 1, 1, x)`` a clamp): its
+    enclosure is then the max or min rule's, which keeps an affine form's correlations
+    (a where of the hull or of a chord keeps fewer); else None. cases: {operand
+    position: case index} (index 1 is taken where the comparison is true)."""
+    taken = {index: eqn.invars[pos] for pos, index in cases.items()}
+    if set(taken) != {0, 1} or len(eqn.outvars) != 1:
+        return None
+    out = eqn.outvars[0].aval
+    if (tuple(jnp.broadcast_shapes(u.aval.shape, v.aval.shape)) != tuple(out.shape)
+            or any(isinstance(w, jcore.Var) and w.aval.dtype != out.dtype for w in (u, v))):
+        return None
+    if _same_operand(taken[1], u) and _same_operand(taken[0], v):
+        return "max" if _FIRST_BELOW[comparison] else "min"
+    if _same_operand(taken[1], v) and _same_operand(taken[0], u):
+        return "min" if _FIRST_BELOW[comparison] else "max"
+    return None
+
+
+def _same_operand(a, b) -> bool:
+    """a and b are one variable, or literals of one scalar value."""
+    if isinstance(a, jcore.Var) or isinstance(b, jcore.Var):
+        return a is b
+    x, y = np.asarray(a.val), np.asarray(b.val)
+    return x.shape == y.shape == () and bool(x == y)
 
 
 def _unneeded(jaxpr, selections) -> frozenset:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import typing
 import weakref
 from collections.abc import Callable
 
@@ -311,7 +312,9 @@ def _eval_jaxpr(jaxpr, consts, args, ctx: _Context):
     def run(i):
         eqn = jaxpr.eqns[i]
         sel = plan.selections.get(i)
-        if sel is None:
+        if sel is not None and sel.extremum is not None:
+            outs = _apply(_EXTREMA[sel.extremum], [read(sel.u), read(sel.v)], ctx)
+        elif sel is None:
             invals = [read(v) for v in eqn.invars]
             key = _same_equation(eqn, invals)
             outs = seen.get(key) if key is not None else None
@@ -352,6 +355,17 @@ def _plan(jaxpr) -> _branches.Plan:
     if jaxpr not in _PLANS:
         _PLANS[jaxpr] = _branches.plan(jaxpr, _call_body)
     return _PLANS[jaxpr]
+
+
+class _Primitive(typing.NamedTuple):
+    """An equation of one primitive with no params, for `_apply`."""
+
+    primitive: object
+    params: dict
+
+
+# a selection of its compared operands (`_branches.extremum`) is their max or min
+_EXTREMA = {"max": _Primitive(lax.max_p, {}), "min": _Primitive(lax.min_p, {})}
 
 
 def _smooth_cases(jaxpr, sel) -> bool:
