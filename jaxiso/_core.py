@@ -20,7 +20,7 @@ import numpy as np
 __all__ = ["Rays", "Hits", "Plan", "Scene", "SceneFields", "pytree_dataclass", "static_field",
            "slab", "facing", "unit_or_facing", "on_points", "attach_t", "miss_like",
            "concrete", "check_finite", "check_choice", "check_count", "isovalues_array",
-           "cpu_lanes"]
+           "cpu_lanes", "ByIdentity", "WithStaticLeaves", "is_array_leaf", "unwrapped"]
 
 
 # -- the one pytree mechanism ---------------------------------------------------------
@@ -58,6 +58,80 @@ def pytree_dataclass(cls):
 
     jax.tree_util.register_pytree_with_keys(cls, flatten_with_keys, unflatten, flatten)
     return cls
+
+
+class ByIdentity:
+    """A hashable stand-in for an unhashable object (an equinox module holding arrays),
+    equal only to a stand-in for the same object. It holds the object, so while the
+    stand-in lives (as a cache key, in a pytree's static data) the object's id is not
+    reused."""
+
+    __slots__ = ("obj",)
+
+    def __init__(self, obj):
+        self.obj = obj
+
+    def __hash__(self) -> int:
+        return id(self.obj)
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, ByIdentity) and other.obj is self.obj
+
+    @staticmethod
+    def wrap(x):
+        """x if it is hashable, else its stand-in."""
+        try:
+            hash(x)
+        except TypeError:
+            return ByIdentity(x)
+        return x
+
+    @staticmethod
+    def unwrap(x):
+        return x.obj if isinstance(x, ByIdentity) else x
+
+
+def is_array_leaf(x) -> bool:
+    """x can be a traced argument of a jitted function (an array, a number, or the
+    shape of one)."""
+    return isinstance(x, (jax.Array, jax.ShapeDtypeStruct, jax.core.Tracer, np.ndarray,
+                          np.generic, bool, int, float, complex))
+
+
+@jax.tree_util.register_pytree_node_class
+class WithStaticLeaves:
+    """A pytree (`value`) whose array leaves are its children and whose other leaves
+    (functions, strings, custom_jvp objects: an equinox module's activation) are static
+    data, so that it passes through `jax.jit` as `equinox.filter_jit` would pass it.
+    Which leaves are arrays is decided once, on the values given (`mask`): JAX rebuilds
+    pytrees with placeholders in the children's places while it traces."""
+
+    def __init__(self, value, mask=None):
+        self.value = value
+        self.mask = (tuple(is_array_leaf(x) for x in jax.tree_util.tree_leaves(value))
+                     if mask is None else mask)
+
+    @staticmethod
+    def needed(tree) -> bool:
+        """tree has a leaf that is not an array (jit cannot trace it)."""
+        return not all(is_array_leaf(x) for x in jax.tree_util.tree_leaves(tree))
+
+    def tree_flatten(self):
+        leaves, tree = jax.tree_util.tree_flatten(self.value)
+        static = tuple(ByIdentity.wrap(x) for x, m in zip(leaves, self.mask) if not m)
+        return [x for x, m in zip(leaves, self.mask) if m], (tree, self.mask, static)
+
+    @classmethod
+    def tree_unflatten(cls, aux, arrays):
+        tree, mask, static = aux
+        arrays, static = iter(arrays), iter(static)
+        leaves = [next(arrays) if m else ByIdentity.unwrap(next(static)) for m in mask]
+        return cls(jax.tree_util.tree_unflatten(tree, leaves), mask)
+
+
+def unwrapped(params):
+    """params as the user gave them (a `WithStaticLeaves` opened)."""
+    return params.value if isinstance(params, WithStaticLeaves) else params
 
 
 class SceneFields:

@@ -58,8 +58,8 @@ def test_tiny_run_writes_json(tmp_path):
     assert saved["total_s"] == result["total_s"] and saved["errors"] == {}
     rows = saved["spellings"]["rows"]
     assert [r["spelling"] for r in rows] == ["jax.nn", "equinox.params"]
-    base, crashed = rows
-    assert "Cannot determine dtype" in crashed["error"]
-    assert base["measured"] and base["mask_agreement"] >= 0.99 and base["compared"] == 144
-    assert base["arithmetic"] in ("interval", "affine") and base["dense"]["run_s"] > 0
-    assert saved["spellings"]["summary"]["crashed"] == ["relu/equinox.params"]
+    for row in rows:  # the module as params crashed before (session 31)
+        assert "error" not in row, row
+        assert row["measured"] and row["mask_agreement"] >= 0.99 and row["compared"] == 144
+        assert row["arithmetic"] in ("interval", "affine") and row["dense"]["run_s"] > 0
+    assert saved["spellings"]["summary"]["crashed"] == []

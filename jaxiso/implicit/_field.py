@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._core import on_points, slab, unit_or_facing
+from .._core import on_points, slab, unit_or_facing, unwrapped
 from ..arith import Affine, Interval, aa, extend, ia
 from ._memo import BoundedCache
 
@@ -49,12 +49,12 @@ def as_field(f, has_params: bool):
                             "f(x, y, z, params) or f(x, y, z, w, params)")
         call = lambda x, y, z, w, params: f(x, y, z)  # noqa: E731
     elif n == 4:
-        call = ((lambda x, y, z, w, params: f(x, y, z, params)) if has_params  # noqa: E731
-                else (lambda x, y, z, w, params: f(x, y, z, w)))
+        call = ((lambda x, y, z, w, params: f(x, y, z, unwrapped(params)))  # noqa: E731
+                if has_params else (lambda x, y, z, w, params: f(x, y, z, w)))
     elif n == 5:
         if not has_params:
             raise TypeError("f takes (x, y, z, w, params) but no params were given")
-        call = f
+        call = lambda x, y, z, w, params: f(x, y, z, w, unwrapped(params))  # noqa: E731
     else:
         raise TypeError(f"f must take (x, y, z[, w][, params]); it takes {n} positional "
                         "arguments")

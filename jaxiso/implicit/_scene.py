@@ -18,6 +18,7 @@ from .._core import (
     DEFAULT_MEMORY_BUDGET,
     Hits,
     Plan,
+    WithStaticLeaves,
     check_choice,
     isovalues_array,
     pytree_dataclass,
@@ -47,7 +48,9 @@ class ImplicitSurface(ImplicitOptions):
 
     Traced fields (changing them never recompiles):
       lo, hi: [3] corners of the domain box.
-      params: pytree of arrays passed to f.
+      params: pytree of arrays passed to f. Leaves that are not arrays (an equinox
+        module's activation function) are static: params is then held as a
+        `jaxiso._core.WithStaticLeaves` of it, and f receives it as given.
       isovalues: [I] level values drawn (each hit reports which one in `Hits.surface`).
       w: the 4th coordinate (time / morphing).
       eps: world-space length of the final piece (Eq. 6.19: depth ceil(log2(L / eps))).
@@ -136,6 +139,8 @@ class ImplicitSurface(ImplicitOptions):
         if not callable(self.f):
             raise TypeError(f"f must be callable, got {type(self.f).__name__}")
         object.__setattr__(self, "isovalues", isovalues_array(self.isovalues))
+        if WithStaticLeaves.needed(self.params):  # e.g. an equinox module as params
+            object.__setattr__(self, "params", WithStaticLeaves(self.params))
         super()._validate()
         check_choice("culling", self.culling, CULLINGS)
         as_field(self.f, self.has_params)  # fail early on a bad signature
