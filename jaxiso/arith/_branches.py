@@ -73,7 +73,7 @@ class Selection:
     predicate: int  # the position of the comparison's result among the operands
     inputs: frozenset
     elementwise: bool
-    extremum: str | None = None  # "max" / "min": the cases are the compared operands
+    extremum: tuple | None = None  # ("max" or "min", a, b): the selection is that of a, b
 
 
 # lax primitives that act element by element (with operands of one shape or scalars)
@@ -214,28 +214,68 @@ def plan(jaxpr, call_body) -> Plan:
                 _inputs(eqns, steps, others + [u, v]),
                 all(_elementwise(eqns[j], call_body) for j in steps)
                 and _elementwise_selection(eqn, call_body),
-                extremum(eqns[k].primitive.name, u, v, eqn, cases))
+                extremum(eqns[k].primitive.name, u, v, eqn, cases, eqns, producer))
     return Plan(selections, _unneeded(jaxpr, selections))
 
 
-def extremum(comparison: str, u, v, eqn, cases) -> str | None:
-    """"max" or "min" when the selection takes exactly its compared operands, shaped as
-    its result (``where(h > 0, h, 0)`` is relu, ``where(x > 1, 1, x)`` a clamp): its
-    enclosure is then the max or min rule's, which keeps an affine form's correlations
-    (a where of the hull or of a chord keeps fewer); else None. cases: {operand
-    position: case index} (index 1 is taken where the comparison is true)."""
+def extremum(comparison: str, u, v, eqn, cases, eqns, producer) -> tuple | None:
+    """("max" or "min", a, b) when the selection is max(a, b) or min(a, b), shaped as its
+    result, else None:
+
+    * its cases are the compared operands: ``where(h > 0, h, 0)`` is relu,
+      ``where(x > 1, 1, x)`` a clamp (a, b = u, v);
+    * u is compared with 0 and each case is u times a constant (u itself included):
+      ``where(h >= 0, h, 0.01 h)`` (`jax.nn.leaky_relu`) is max(h, 0.01 h): two lines
+      through the origin, the steeper one taken right of it is their max, else min.
+
+    Its enclosure is then the max or min rule's, which keeps an affine form's
+    correlations (the selection rule's join or chord keeps fewer, at several times the
+    cost). cases: {operand position: case index} (index 1 is taken where the comparison
+    is true); eqns, producer: the jaxpr's equations and {variable: its equation}."""
     taken = {index: eqn.invars[pos] for pos, index in cases.items()}
-    if set(taken) != {0, 1} or len(eqn.outvars) != 1:
+    out = eqn.outvars[0].aval if len(eqn.outvars) == 1 else None
+    if set(taken) != {0, 1} or out is None or any(
+            isinstance(w, jcore.Var) and w.aval.dtype != out.dtype for w in (u, v)):
         return None
-    out = eqn.outvars[0].aval
-    if (tuple(jnp.broadcast_shapes(u.aval.shape, v.aval.shape)) != tuple(out.shape)
-            or any(isinstance(w, jcore.Var) and w.aval.dtype != out.dtype for w in (u, v))):
+    first_below = _FIRST_BELOW[comparison]  # true: u >= v
+    if _is_zero_literal(u) and isinstance(v, jcore.Var):  # 0 < h: h > 0
+        u, v, first_below = v, u, not first_below
+    if tuple(jnp.broadcast_shapes(u.aval.shape, v.aval.shape)) == tuple(out.shape):
+        if _same_operand(taken[1], u) and _same_operand(taken[0], v):
+            return ("max" if first_below else "min", u, v)
+        if _same_operand(taken[1], v) and _same_operand(taken[0], u):
+            return ("min" if first_below else "max", u, v)
+    if not (_is_zero_literal(v) and tuple(u.aval.shape) == tuple(out.shape)):
         return None
-    if _same_operand(taken[1], u) and _same_operand(taken[0], v):
-        return "max" if _FIRST_BELOW[comparison] else "min"
-    if _same_operand(taken[1], v) and _same_operand(taken[0], u):
-        return "min" if _FIRST_BELOW[comparison] else "max"
-    return None
+    slopes = [_slope_of(taken[i], u, eqns, producer) for i in (0, 1)]
+    if None in slopes or slopes[0] == slopes[1]:
+        return None
+    right = 1 if first_below else 0  # the case taken where u >= 0
+    steeper_right = slopes[right] > slopes[1 - right]
+    return ("max" if steeper_right else "min", taken[1], taken[0])
+
+
+def _is_zero_literal(x) -> bool:
+    return isinstance(x, jcore.Literal) and np.shape(x.val) == () and float(x.val) == 0.0
+
+
+def _slope_of(case, u, eqns, producer):
+    """c where `case` is c u: u itself (1), the literal 0 (0), ``neg`` of u (-1) or
+    ``mul`` of u by a scalar literal; else None."""
+    if case is u:
+        return 1.0
+    if _is_zero_literal(case):
+        return 0.0
+    k = producer.get(case) if isinstance(case, jcore.Var) else None
+    if k is not None and eqns[k].primitive.name == "neg" and eqns[k].invars[0] is u:
+        return -1.0
+    if k is None or eqns[k].primitive.name != "mul":
+        return None
+    a, b = eqns[k].invars
+    other = b if a is u else a if b is u else None
+    if not isinstance(other, jcore.Literal) or np.shape(other.val) != ():
+        return None
+    return float(other.val)
 
 
 def _same_operand(a, b) -> bool:

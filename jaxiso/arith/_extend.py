@@ -313,7 +313,8 @@ def _eval_jaxpr(jaxpr, consts, args, ctx: _Context):
         eqn = jaxpr.eqns[i]
         sel = plan.selections.get(i)
         if sel is not None and sel.extremum is not None:
-            outs = _apply(_EXTREMA[sel.extremum], [read(sel.u), read(sel.v)], ctx)
+            which, a, b = sel.extremum
+            outs = _apply(_EXTREMA[which], [read(a), read(b)], ctx)
         elif sel is None:
             invals = [read(v) for v in eqn.invars]
             key = _same_equation(eqn, invals)
