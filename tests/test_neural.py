@@ -121,6 +121,60 @@ def test_softplus_rule_encloses_and_converges(arithmetic):
             assert float(iv.hi - iv.lo) <= 1.05 * true, (c, r, float(iv.hi - iv.lo), true)
 
 
+@pytest.mark.parametrize("arithmetic", ["interval", "affine"])
+def test_silu_rule_encloses_and_converges(arithmetic):
+    """jax.nn.silu on wide, small and point ranges, across its minimum (x = -1.278) and
+    away from it: sound against float64 samples (up to the "fast" rounding); on ranges
+    of radius 1e-3 .. 3e-2 within 10% of the true range (its body x * sigmoid(x)
+    multiplies two forms of x as if unrelated)."""
+    F = extend(jax.nn.silu, arithmetic, n_symbols=1)
+    eps = float(np.finfo(np.float32).eps)
+    rng = np.random.default_rng(3)
+    cases = [(0.0, 100.0), (-1.28, 0.01), (-1.28, 2.0), (-30.0, 5.0), (20.0, 3.0),
+             (0.5, 0.0), (0.0, 1.0)] + [
+        (float(a), float(b))
+        for a, b in zip(rng.normal(0, 4, 40), 10.0 ** rng.uniform(-4, 0.7, 40))]
+    for c, r in cases:
+        x = (Interval(jnp.float32(c - r), jnp.float32(c + r)) if arithmetic == "interval"
+             else Affine(jnp.float32(c), jnp.asarray([r], jnp.float32), jnp.float32(0)))
+        iv = F(x)
+        iv = aa.to_interval(iv) if isinstance(iv, Affine) else iv
+        lo32, hi32 = np.float32(c) - np.float32(r), np.float32(c) + np.float32(r)
+        xs = np.linspace(np.float64(lo32), np.float64(hi32), 4001)
+        v = xs / (1.0 + np.exp(-xs))
+        tol = 16 * eps * max(1.0, np.abs(v).max())
+        assert np.isfinite(float(iv.lo)) and np.isfinite(float(iv.hi)), (c, r)
+        assert float(iv.lo) <= v.min() + tol and float(iv.hi) >= v.max() - tol, (c, r)
+        true = v.max() - v.min()
+        if 1e-3 <= r <= 3e-2 and true > 1e-4:
+            assert float(iv.hi - iv.lo) <= 1.1 * true + tol, (c, r, float(iv.hi - iv.lo), true)
+
+
+def test_silu_network_encloses_tighter_than_its_body():
+    """A 6 x 32 silu network (the spelling suite's): the rule's enclosure on small boxes
+    is narrower than its body's (x * sigmoid(x)) and than the spelling
+    x / (1 + exp(-x)); auto's measurement on ray pieces went from 1,600x the true
+    range to 20x with it (38x for the other spelling)."""
+    from jaxiso.implicit import spellings as sp
+    net = sp.random_net(0, "silu", 6, 32)
+    rng = np.random.default_rng(4)
+    lo = rng.uniform(-0.9, 0.85, size=(3, 64)).astype(np.float32)
+    boxes = [Interval(jnp.asarray(lo[i]), jnp.asarray(lo[i] + np.float32(0.05)))
+             for i in range(3)]
+
+    def width(act):
+        params = sp._params(net)
+        def f(x, y, z):
+            return sp._sphere(x, y, z) + sp._mlp(act, params, jnp.stack([x, y, z]))
+        iv = aa.to_interval(jax.jit(extend(f, "affine"))(*boxes))
+        return float(np.median(np.asarray(iv.hi - iv.lo, np.float64)))
+
+    rule = width(jax.nn.silu)
+    body = width(lambda h: h * jax.nn.sigmoid(h))
+    other = width(lambda h: h / (1.0 + jnp.exp(-h)))
+    assert np.isfinite(rule) and rule < 0.5 * body and rule < other, (rule, body, other)
+
+
 def test_relu_of_an_off_neuron_drops_its_error():
     """max(x, 0) on a form surely below 0 is exactly 0, error term included (AF1 kept the
     error of every off neuron, so a network's enclosure never shrank)."""

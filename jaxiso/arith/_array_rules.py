@@ -241,6 +241,56 @@ def softplus_affine(x):
                         ia.monotone_increasing(jax.nn.softplus)(iv))
 
 
+# silu(x) = x sigmoid(x) falls to its minimum -0.2784645... at x = -1.2784645... (where
+# 1 + x (1 - sigmoid(x)) = 0) and rises on both sides of it; |silu''| <= 1/2 (its value
+# at 0: silu'' = s (1 - s) (2 - x tanh(x / 2)) with s (1 - s) <= 1/4 and the bracket <= 2
+# in absolute value where s (1 - s) is not far smaller)
+_SILU_ARGMIN = -1.2784645
+_SILU_MIN = -0.27846457  # rounded down
+_SILU_CURVATURE = 0.5
+
+
+def _silu_range(iv: Interval) -> Interval:
+    """silu on [lo, hi]: the larger end above, the minimum or the smaller end below."""
+    a, b = jax.nn.silu(iv.lo), jax.nn.silu(iv.hi)
+    inside = (iv.lo <= _SILU_ARGMIN) & (_SILU_ARGMIN <= iv.hi)
+    return Interval(jnp.where(inside, _SILU_MIN, jnp.minimum(a, b)), jnp.maximum(a, b),
+                    iv.defined)
+
+
+def silu_interval(x):
+    """jax.nn.silu: its range from its one minimum (its body, x * sigmoid(x), multiplies
+    two ranges of x as if unrelated)."""
+    if not isinstance(x, Interval):
+        return NotImplemented
+    return _silu_range(x)
+
+
+def silu_affine(x):
+    """jax.nn.silu by a first-order Taylor form about the centre m: silu(m) + silu'(m) h
+    with |remainder| <= h^2 / 4 (|silu''| <= 1/2, |h| <= rad) while that is at most a
+    quarter of the radius (rad <= 1), else its range on the error term. The body's
+    product x * sigmoid(x) of two forms of x took the deviations of both (a 6 x 32 silu
+    net's enclosures were 1,600x its range on ray pieces, 20x with this rule; written
+    x / (1 + exp(-x)), 38x: issue 28)."""
+    if not isinstance(x, Affine):
+        return NotImplemented
+    eps = float(jnp.finfo(x.center.dtype).eps)
+    m, r = x.center, aa.radius(x)
+    sig = jax.nn.sigmoid(m)
+    value, slope = m * sig, sig * (1.0 + m * (1.0 - sig))
+    delta = (0.5 * _SILU_CURVATURE * r * r
+             + 4.0 * eps * (jnp.abs(value) + jnp.abs(slope) * r + 1.0))
+    taylor = Affine(value, slope[..., None] * x.dev, jnp.abs(slope) * x.err + delta,
+                    x.defined)
+    values = _silu_range(aa.padded_range(x))
+    hull = aa.interval_fallback(values, x.n)
+    # the Taylor form keeps the correlation that the next operations cancel: used while
+    # its remainder is small against the radius (as sin's), else the range
+    use = aa.is_finite(taylor) & (delta <= 0.25 * r)
+    return aa.bounded(aa.select(use, taylor, hull), values)
+
+
 def _elu_alpha(body, x, rest):
     """elu's alpha from its body, a point function of (x, *rest): elu(-1) = alpha (e^-1 -
     1); None when it is not a concrete non-negative number (a traced or lifted alpha:

@@ -272,6 +272,9 @@ NAMED_CALLS["elu"] = Rule(ar.elu_interval, ar.elu_affine, ulps=_ulps.TRANSCENDEN
 # the two terms; softplus is increasing and convex
 NAMED_CALLS["softplus"] = Rule(ar.softplus_interval, ar.softplus_affine,
                                ulps=_ulps.TRANSCENDENTAL)
+# jax.nn.silu: its body x * sigmoid(x) multiplies two forms of x as if unrelated; silu
+# has one minimum and bounded curvature
+NAMED_CALLS["silu"] = Rule(ar.silu_interval, ar.silu_affine, ulps=_ulps.TRANSCENDENTAL)
 NAMED_CALLS["floor_divide"] = Rule(ar.floor_divide_interval, ar.floor_divide_affine,
                                    ulps=0.0)
 # jnp.trunc: its body is where(x < 0, ceil, floor), the hull [-1, 1] on a box across 0
