@@ -66,6 +66,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import functools
 import importlib
 import io
 import pathlib
@@ -205,14 +206,33 @@ def hand_sampling(m, samples=HAND_SAMPLES, bisections=HAND_BISECTIONS, batch=256
         a, b = lax.fori_loop(0, bisections, halve, (ts[k], ts[k + 1]))
         return hit, jnp.where(hit, 0.5 * (a + b), jnp.inf)
 
-    @jax.jit
-    def trace(params, origins, directions):
+    @functools.partial(jax.jit, static_argnums=(0, 1))
+    def traced(tree, static, arrays, origins, directions):
+        params = _rejoin(tree, static, arrays)
         # batches of rays bound the [batch, samples, width] activations
         hit, t = lax.map(lambda od: one_ray(params, *od), (origins, directions),
                          batch_size=batch)
         # every ray evaluates all its points (a miss of the box too)
         return hit, t, jnp.full(hit.shape, samples + bisections, jnp.int32)
+
+    def trace(params, origins, directions):
+        # params' leaves that are no arrays (an equinox module's activation function)
+        # are static, as equinox.filter_jit would make them
+        leaves, tree = jax.tree_util.tree_flatten(params)
+        static = tuple(None if _is_array(x) else x for x in leaves)
+        arrays = [x for x in leaves if _is_array(x)]
+        return traced(tree, static, arrays, origins, directions)
     return trace
+
+
+def _is_array(x) -> bool:
+    return isinstance(x, (jax.Array, np.ndarray, np.generic, float, int))
+
+
+def _rejoin(tree, static, arrays):
+    arrays = iter(arrays)
+    return jax.tree_util.tree_unflatten(
+        tree, [next(arrays) if x is None else x for x in static])
 
 
 def hand_caster(net, trace):
