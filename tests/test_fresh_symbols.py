@@ -136,6 +136,8 @@ CASES = {
         h - c > 0, h - c, np.expm1(np.minimum(h - c, 0.0)))),
     "softplus": ("any", lambda h, h2, c: jax.nn.softplus(3 * h),
                  lambda h, h2, c: np.logaddexp(3 * h, 0.0)),
+    "silu": ("any", lambda h, h2, c: jax.nn.silu(4 * h - c),
+             lambda h, h2, c: (4 * h - c) / (1.0 + np.exp(c - 4 * h))),
     "hypot": ("any", lambda h, h2, c: jnp.hypot(h, c), lambda h, h2, c: np.hypot(h, c)),
     "floor_divide": ("any", lambda h, h2, c: (h // 0.25, h // c),
                      lambda h, h2, c: (np.floor_divide(h, 0.25), np.floor_divide(h, c))),
