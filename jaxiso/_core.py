@@ -114,7 +114,7 @@ class WithStaticLeaves:
     @staticmethod
     def needed(tree) -> bool:
         """tree has a leaf that is not an array (jit cannot trace it)."""
-        return not all(is_array_leaf(x) for x in jax.tree_util.tree_leaves(tree))
+        return not all(WithStaticLeaves(tree).mask)
 
     def tree_flatten(self):
         leaves, tree = jax.tree_util.tree_flatten(self.value)

@@ -260,7 +260,8 @@ def test_a_where_of_other_cases_is_no_extremum():
     """Only the compared operands, or lines through the origin compared at 0, make a max
     or min."""
     for fn in [lambda h: jnp.where(h > 0, h, 0.1), lambda h: jnp.where(h > 0.5, h, 0.5 * h),
-               lambda h: jnp.where(h > 0, h, h * h)]:
+               lambda h: jnp.where(h > 0, h, h * h), lambda h: jnp.where(h > 0, h, jnp.nan * h),
+               lambda h: jnp.where(h > 0, h, 1.0 * h)]:
         jaxpr = jax.make_jaxpr(fn)(jnp.ones(4, jnp.float32)).jaxpr
         sels = list(_branches.plan(jaxpr, _call_body).selections.values())
         assert sels and all(sel.extremum is None for sel in sels)

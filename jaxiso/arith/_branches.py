@@ -248,8 +248,8 @@ def extremum(comparison: str, u, v, eqn, cases, eqns, producer) -> tuple | None:
     if not (_is_zero_literal(v) and tuple(u.aval.shape) == tuple(out.shape)):
         return None
     slopes = [_slope_of(taken[i], u, eqns, producer) for i in (0, 1)]
-    if None in slopes or slopes[0] == slopes[1]:
-        return None
+    if None in slopes or not np.all(np.isfinite(slopes)) or slopes[0] == slopes[1]:
+        return None  # one line (or a NaN slope) is no max or min
     right = 1 if first_below else 0  # the case taken where u >= 0
     steeper_right = slopes[right] > slopes[1 - right]
     return ("max" if steeper_right else "min", taken[1], taken[0])
