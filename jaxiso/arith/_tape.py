@@ -38,7 +38,7 @@ from ._interval import Interval
 
 __all__ = ["OPS", "Tape", "assemble", "from_function", "evaluate", "prune", "allocate",
            "bucket", "longest_bucket", "take_regions", "resize", "with_opset",
-           "with_registers", "map_program", "register_bucket"]
+           "with_registers", "map_program", "register_bucket", "registers_in_use"]
 
 OPS = ("const", "var", "neg", "abs", "square", "sqrt", "exp", "log", "sin", "cos", "ipow",
        "add", "sub", "mul", "div", "min", "max")
@@ -739,18 +739,13 @@ def _new_positions(keep, top):
 
 def _pruned_registers(dense, new_n, registers: int):
     """Registers [L, 3, R] of the pruned tapes (dense: op, a, b, ... [4, L, R]) in a file
-    of `registers`."""
-    L, R = dense.shape[1:]
-
-    def in_order(_):  # every instruction its own register: valid when all fit the file
-        return jnp.stack([dense[1], dense[2], jnp.broadcast_to(
-            jnp.arange(L, dtype=jnp.int32)[:, None], (L, R))], axis=1)
-
-    # the scan only where some pruned tape is longer than the file (on the 2D path most
-    # are short, and the scan cost more than it saved)
-    return lax.cond(jnp.max(new_n) <= registers, in_order,
-                    lambda _: allocate(dense[0], dense[1], dense[2], new_n, registers)[0],
-                    None)
+    of `registers`, by the linear scan (`allocate`): a pruned tape holds few values at
+    once (Prospero's final pieces at most 18), and `registers_in_use` then lets the
+    evaluator hold a file that small. Each instruction in its own register (the scan
+    skipped when the tapes fit the file) left the slab's final checks running a file of
+    256 registers: 2.8 s a batch of 49,152 pieces, against 0.2 s on 32 and 0.2 s of
+    scan (benchmarks/NOTES.md, session 32)."""
+    return allocate(dense[0], dense[1], dense[2], new_n, registers)[0]
 
 
 def allocate(op, a, b, n, registers: int):
@@ -833,6 +828,24 @@ def with_registers(tape: Tape, registers: int) -> Tape:
     if registers < tape.registers:
         raise ValueError(f"the tape needs {tape.registers} registers, got {registers}")
     return dataclasses.replace(tape, registers=int(registers))
+
+
+@jax.jit
+def _highest_register(tape: Tape):
+    L = tape.length
+    live = (jnp.arange(L)[:, None] < tape.n[None, :])[:, None, :]  # [L, 1, R]
+    return jnp.max(jnp.where(live, tape.reg, -1))
+
+
+def registers_in_use(tape: Tape, minimum: int = 32) -> Tape:
+    """A batch of (concrete) tapes with its register file cut to the registers its
+    instructions use, bucketed (at least `minimum`, so that batches share compiled
+    shapes); the evaluator's file, and the time each step's gathers and scatters take
+    in it, shrink with it."""
+    if tape.reg is None or tape.op.ndim != 2:
+        return tape
+    used = int(_highest_register(tape)) + 1
+    return dataclasses.replace(tape, registers=min(tape.registers, bucket(used, minimum)))
 
 
 def take_regions(tape: Tape, index) -> Tape:

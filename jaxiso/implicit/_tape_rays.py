@@ -697,7 +697,7 @@ def _survivors(run: _Run, tapes, children, amb, chosen, n_amb: int, level: int,
                                                  1 if origin is None else h)
         length = sub.length
         if pruning:
-            sub = _prune_sorted(sub, choices)
+            sub = _tape.registers_in_use(_prune_sorted(sub, choices))
             length = _tape.longest_bucket(sub)
         sub, sub_reg = _longest_first(sub, sub_reg, length)
         pieces.append((sub, sub_reg, min(size, n_amb - start)))
