@@ -38,7 +38,8 @@ from ._interval import Interval
 
 __all__ = ["OPS", "Tape", "assemble", "from_function", "evaluate", "prune", "allocate",
            "bucket", "longest_bucket", "take_regions", "resize", "with_opset",
-           "with_registers", "map_program", "register_bucket", "registers_in_use"]
+           "with_registers", "map_program", "register_bucket", "registers_in_use",
+           "highest_register"]
 
 OPS = ("const", "var", "neg", "abs", "square", "sqrt", "exp", "log", "sin", "cos", "ipow",
        "add", "sub", "mul", "div", "min", "max")
@@ -830,21 +831,22 @@ def with_registers(tape: Tape, registers: int) -> Tape:
     return dataclasses.replace(tape, registers=int(registers))
 
 
-@jax.jit
-def _highest_register(tape: Tape):
-    L = tape.length
-    live = (jnp.arange(L)[:, None] < tape.n[None, :])[:, None, :]  # [L, 1, R]
+def highest_register(tape: Tape):
+    """The highest register a batch's instructions use (traced int32 scalar; -1: none)."""
+    live = (jnp.arange(tape.length)[:, None] < tape.n[None, :])[:, None, :]  # [L, 1, R]
     return jnp.max(jnp.where(live, tape.reg, -1))
 
 
-def registers_in_use(tape: Tape, minimum: int = 32) -> Tape:
+def registers_in_use(tape: Tape, highest=None, minimum: int = 32) -> Tape:
     """A batch of (concrete) tapes with its register file cut to the registers its
-    instructions use, bucketed (at least `minimum`, so that batches share compiled
-    shapes); the evaluator's file, and the time each step's gathers and scatters take
-    in it, shrink with it."""
+    instructions use (`highest`: `highest_register`, computed when None), bucketed (at
+    least `minimum`, so that batches share compiled shapes); the evaluator's file, and
+    the time each step's gathers and scatters take in it, shrink with it."""
     if tape.reg is None or tape.op.ndim != 2:
         return tape
-    used = int(_highest_register(tape)) + 1
+    if highest is None:
+        highest = jax.jit(highest_register)(tape)
+    used = int(highest) + 1
     return dataclasses.replace(tape, registers=min(tape.registers, bucket(used, minimum)))
 
 
