@@ -318,12 +318,32 @@ def test_registers_stay_few_and_pruned_tapes_fit_their_file(size):
     assert cut.registers == _tape.bucket(int(np.max(np.asarray(used))), 4) <= tape.registers
     np.testing.assert_array_equal(
         np.asarray(jax.jit(_tape.evaluate)(cut, [jnp.asarray(c) for c in x])), got)
-    # a file longer than the program needs: pruning still packs the live values low
-    wide = _tape.registers_in_use(jax.jit(_tape.prune)(
-        _tape.with_registers(batch, tape.length), choice), minimum=4)
-    assert wide.registers == cut.registers
+    # a file longer than the program needs: tapes up to IN_ORDER_MAX long keep their
+    # instructions in order, longer ones are packed low by the scan
+    wide = jax.jit(_tape.prune)(_tape.with_registers(batch, tape.length), choice)
+    if int(np.max(np.asarray(pruned.n))) <= _tape.IN_ORDER_MAX:
+        assert np.array_equal(np.asarray(wide.reg[:, 2]), np.broadcast_to(
+            np.arange(tape.length)[:, None], (tape.length, R)))
+    else:
+        assert _tape.registers_in_use(wide, minimum=4).registers == cut.registers
     np.testing.assert_array_equal(
         np.asarray(jax.jit(_tape.evaluate)(wide, [jnp.asarray(c) for c in x])), got)
+
+
+def test_short_pruned_tapes_keep_registers_in_order():
+    """Pruned tapes no longer than IN_ORDER_MAX skip the scan: each instruction writes
+    its own register, and the values match the scanned file's."""
+    rng = np.random.default_rng(7)
+    tape = _random_program(rng, 300)
+    R = 16
+    batch = _tape.with_registers(_tape.take_regions(tape, jnp.zeros(R, jnp.int32)), 64)
+    choice = jnp.asarray(rng.integers(1, 3, (tape.length, R)).astype(np.int8))  # all decided
+    pruned = jax.jit(_tape.prune)(batch, choice)
+    n = np.asarray(pruned.n)
+    assert n.max() <= _tape.IN_ORDER_MAX  # every min/max decided: short tapes
+    reg = np.asarray(pruned.reg[:, 2])
+    for r in range(R):
+        assert np.array_equal(reg[:n[r], r], np.arange(n[r]))
 
 
 def test_register_count_is_flat_in_program_length():

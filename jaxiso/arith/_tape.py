@@ -740,13 +740,28 @@ def _new_positions(keep, top):
 
 def _pruned_registers(dense, new_n, registers: int):
     """Registers [L, 3, R] of the pruned tapes (dense: op, a, b, ... [4, L, R]) in a file
-    of `registers`, by the linear scan (`allocate`): a pruned tape holds few values at
-    once (Prospero's final pieces at most 18), and `registers_in_use` then lets the
-    evaluator hold a file that small. Each instruction in its own register (the scan
-    skipped when the tapes fit the file) left the slab's final checks running a file of
-    256 registers: 2.8 s a batch of 49,152 pieces, against 0.2 s on 32 and 0.2 s of
-    scan (benchmarks/NOTES.md, session 32)."""
-    return allocate(dense[0], dense[1], dense[2], new_n, registers)[0]
+    of `registers`: each instruction its own register where every pruned tape is at most
+    `IN_ORDER_MAX` long and fits the file (no scan: on short tapes it cost more than it
+    saved), else the linear scan (`allocate`), which packs a tape's values into the
+    registers live at once (Prospero's final pieces: at most 18 of its 256), so that
+    `registers_in_use` can cut the evaluator's file. Registers in order on tapes up to
+    128 long left the slab's final checks running a file of 256: 2.8 s a batch of 49,152
+    pieces, against 0.2 s on 32 registers after a 0.2 s scan (benchmarks/NOTES.md,
+    session 32)."""
+    L, R = dense.shape[1:]
+
+    def in_order(_):
+        return jnp.stack([dense[1], dense[2], jnp.broadcast_to(
+            jnp.arange(L, dtype=jnp.int32)[:, None], (L, R))], axis=1)
+
+    return lax.cond(jnp.max(new_n) <= min(registers, IN_ORDER_MAX), in_order,
+                    lambda _: allocate(dense[0], dense[1], dense[2], new_n, registers)[0],
+                    None)
+
+
+# Pruned tapes at most this long keep each instruction in its own register (the smallest
+# file `registers_in_use` cuts to)
+IN_ORDER_MAX = 32
 
 
 def allocate(op, a, b, n, registers: int):
@@ -837,7 +852,7 @@ def highest_register(tape: Tape):
     return jnp.max(jnp.where(live, tape.reg, -1))
 
 
-def registers_in_use(tape: Tape, highest=None, minimum: int = 32) -> Tape:
+def registers_in_use(tape: Tape, highest=None, minimum: int = IN_ORDER_MAX) -> Tape:
     """A batch of (concrete) tapes with its register file cut to the registers its
     instructions use (`highest`: `highest_register`, computed when None), bucketed (at
     least `minimum`, so that batches share compiled shapes); the evaluator's file, and
