@@ -351,3 +351,27 @@ def test_register_count_is_flat_in_program_length():
     lengths = [P.tape_of(csg_program(k, seed=2)).length for k in (10, 40, 160)]
     assert lengths[-1] >= 8 * lengths[0]
     assert max(counts) <= 32
+
+
+def test_the_evaluators_product_agrees_with_the_interval_rule():
+    """The tape evaluator's product (plain endpoint products, `ia.mul` only in a step
+    where a hull is NaN) gives `ia.mul`'s bounds, up to the sign of a zero, on ordinary
+    boxes, on 0 x inf (the interval convention's 0) and on empty (NaN) factors."""
+    from jaxiso.arith import _interval as ia
+    rng = np.random.default_rng(3)
+    lo = rng.normal(size=(2, 64)).astype(np.float32)
+    hi = lo + rng.uniform(0, 2, size=(2, 64)).astype(np.float32)
+    lo[0, :8] = 0.0
+    hi[0, :4] = 0.0  # [0, 0] and [0, h] factors
+    inf_lo, inf_hi = lo.copy(), hi.copy()
+    inf_hi[1, :8] = np.inf  # times [0, 0] and [0, h]: 0 x inf
+    empty_lo, empty_hi = lo.copy(), hi.copy()
+    empty_lo[1, 10:12] = np.nan
+    empty_hi[1, 10:12] = np.nan
+    for a_lo, a_hi in ((lo, hi), (inf_lo, inf_hi), (empty_lo, empty_hi)):
+        a = ia.Interval(jnp.asarray(a_lo[0]), jnp.asarray(a_hi[0]))
+        b = ia.Interval(jnp.asarray(a_lo[1]), jnp.asarray(a_hi[1]))
+        got = jax.jit(_tape._interval_product)(a, b)
+        want = jax.jit(ia.mul)(a, b)
+        for g, w in ((got.lo, want.lo), (got.hi, want.hi)):
+            np.testing.assert_array_equal(np.asarray(g), np.asarray(w))

@@ -348,6 +348,26 @@ def _ipow_affine(x: Affine, n) -> Affine:
     return aa.from_interval(_ipow_interval(aa.to_interval(x), n), None, x.n)
 
 
+def _interval_product(a: Interval, b: Interval) -> Interval:
+    """`ia.mul` for the evaluator's step: the hull of the four plain endpoint products,
+    and `ia.mul` itself (0 x inf = 0, empties kept empty) only in a step where some
+    region's hull came out NaN, which is where the two differ (a NaN product needs a NaN,
+    or 0 times an infinite, endpoint; XLA's min and max pass NaN on). The guards were 40%
+    of a step's time on Prospero's levels (benchmarks/NOTES.md, session 32). Elsewhere the
+    two agree up to the sign of a zero bound."""
+    p = (a.lo * b.lo, a.lo * b.hi, a.hi * b.lo, a.hi * b.hi)
+    lo = jnp.minimum(jnp.minimum(p[0], p[1]), jnp.minimum(p[2], p[3]))
+    hi = jnp.maximum(jnp.maximum(p[0], p[1]), jnp.maximum(p[2], p[3]))
+
+    def guarded(_):
+        r = ia.mul(a, b)
+        return r.lo, r.hi
+
+    lo, hi = lax.cond(jnp.any(jnp.isnan(lo) | jnp.isnan(hi)), guarded,
+                      lambda _: (lo, hi), None)
+    return Interval(lo, hi)
+
+
 def _enclosure_cases(opset, va, vb, imm, var):
     """The rules of the opcodes in `opset` on intervals (`ia`) or affine forms (`aa`)."""
     table = _enclosure_table(va, vb, imm, var)
@@ -370,7 +390,8 @@ def _enclosure_table(va, vb, imm, var):
         SQRT: lambda: m.sqrt(va), EXP: lambda: m.exp(va), LOG: lambda: m.log(va),
         SIN: lambda: m.sin(va), COS: lambda: m.cos(va),
         IPOW: lambda: ipow(va, n), ADD: lambda: m.add(va, vb),
-        SUB: lambda: m.sub(va, vb), MUL: lambda: m.mul(va, vb), DIV: lambda: m.div(va, vb),
+        SUB: lambda: m.sub(va, vb), DIV: lambda: m.div(va, vb),
+        MUL: lambda: m.mul(va, vb) if m is aa else _interval_product(va, vb),
         MIN: lambda: m.minimum(va, vb), MAX: lambda: m.maximum(va, vb),
     }
 
