@@ -84,7 +84,8 @@ from ._interval_type import (  # noqa: F401 - re-exported: ia is the namespace
 __all__ = [
     "Interval", "interval", "point", "entire", "empty", "as_interval",
     "width", "mid", "rad", "mig", "mag", "contains", "is_empty", "hull", "intersect",
-    "add", "sub", "mul", "div", "neg", "abs", "square", "ipow", "pow", "sqrt", "cbrt",
+    "add", "sub", "mul", "product_hull", "div", "neg", "abs", "square", "ipow", "pow",
+    "sqrt", "cbrt",
     "exp", "log", "sin", "cos", "tan", "tanh", "atan", "atan2", "sinh", "cosh",
     "minimum", "maximum", "clamp", "floor", "ceil", "sign", "fmod",
     "lt", "le", "gt", "ge", "eq", "ne", "logical_and", "logical_or", "logical_not",
@@ -167,13 +168,17 @@ def mul(a, b) -> Interval:
         if k is not None:
             return _scaled(b, k, jnp.multiply)
     a, b = as_interval(a), as_interval(b)
-    p = (endpoint_product(a.lo, b.lo), endpoint_product(a.lo, b.hi),
-         endpoint_product(a.hi, b.lo), endpoint_product(a.hi, b.hi))
-    lo = jnp.minimum(jnp.minimum(p[0], p[1]), jnp.minimum(p[2], p[3]))
-    hi = jnp.maximum(jnp.maximum(p[0], p[1]), jnp.maximum(p[2], p[3]))
+    lo, hi = product_hull(a, b, endpoint_product)
     # An empty factor times an exact 0 endpoint would give 0: keep it empty.
     lo, hi = same_nan(lo, hi, a.lo, b.lo)
     return make(lo, hi, a, b)
+
+
+def product_hull(a: Interval, b: Interval, product=jnp.multiply):
+    """(lo, hi): the least and greatest of the four endpoint products `product(u, v)`."""
+    p = (product(a.lo, b.lo), product(a.lo, b.hi), product(a.hi, b.lo), product(a.hi, b.hi))
+    return (jnp.minimum(jnp.minimum(p[0], p[1]), jnp.minimum(p[2], p[3])),
+            jnp.maximum(jnp.maximum(p[0], p[1]), jnp.maximum(p[2], p[3])))
 
 
 def recip(a) -> Interval:

@@ -355,9 +355,7 @@ def _interval_product(a: Interval, b: Interval) -> Interval:
     or 0 times an infinite, endpoint; XLA's min and max pass NaN on). The guards were 40%
     of a step's time on Prospero's levels (benchmarks/NOTES.md, session 32). Elsewhere the
     two agree up to the sign of a zero bound."""
-    p = (a.lo * b.lo, a.lo * b.hi, a.hi * b.lo, a.hi * b.hi)
-    lo = jnp.minimum(jnp.minimum(p[0], p[1]), jnp.minimum(p[2], p[3]))
-    hi = jnp.maximum(jnp.maximum(p[0], p[1]), jnp.maximum(p[2], p[3]))
+    lo, hi = ia.product_hull(a, b)
 
     def guarded(_):
         r = ia.mul(a, b)
