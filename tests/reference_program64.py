@@ -1,8 +1,9 @@
 """Float64 numpy references for programs (independent of jaxiso's tape code).
 
 `vm64(ops, x, y, z)` interprets a `VMProgram`'s ``ops`` tuple in float64 numpy, freeing
-each value after its last use; `first_inside64` casts rays by dense sampling: the first
-sample inside the solid f < 0 within the box.
+each value after its last use (`vm64_points`: the same on flat points in chunks, so that a
+program with hundreds of live values stays small on a million points); `first_inside64`
+casts rays by dense sampling: the first sample inside the solid f < 0 within the box.
 """
 
 import numpy as np
@@ -35,6 +36,13 @@ def vm64(ops, x, y, z):
                     del vals[i]
         vals[k] = v
     return np.broadcast_to(vals[len(ops) - 1], np.broadcast(x, y, z).shape)
+
+
+def vm64_points(ops, x, y, z, chunk=65536):
+    """`vm64` on flat points [N] (numpy float64), `chunk` points at a time: [N]."""
+    x, y, z = (np.asarray(v, np.float64).reshape(-1) for v in (x, y, z))
+    return np.concatenate([vm64(ops, x[k:k + chunk], y[k:k + chunk], z[k:k + chunk])
+                           for k in range(0, x.size, chunk)])
 
 
 def first_inside64(ops, origin, direction, lo, hi, samples=1024, chunk=256):
