@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import jax
 
-from .render._distributed import process_mesh, spans_processes, to_global, to_host
+from .render import process_mesh, spans_processes, to_global, to_host
 
 __all__ = ["initialize", "process_mesh", "spans_processes", "to_global", "to_host",
            "CPU_COLLECTIVES"]

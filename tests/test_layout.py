@@ -2,6 +2,9 @@
 
 * no module uses another module's underscore name (``from .m import _x`` or ``m._x`` on
   an imported module): a helper shared across files gets a public name;
+* a subpackage's private modules (``arith._tape``) are imported only inside it; other
+  subpackages take what its ``__init__`` exports (the root's private modules, ``_core``,
+  ``_lanes``, are the package's shared floor);
 * no import circle among jaxiso's modules (imports inside functions count);
 * no function longer than MAX_LINES lines.
 
@@ -134,6 +137,28 @@ def test_no_private_name_crosses_files(modules):
     found = sorted({(_name(p), n, line) for p, t in modules.items()
                     for n, line in _private_uses(p, t) if (_name(p), n) not in ALLOWED_PRIVATE})
     assert not found, f"private names used across files: {found}"
+
+
+def _foreign_private_modules(path, tree):
+    """(module, line) of every private module of another subpackage this file imports."""
+    mine = path.relative_to(ROOT).parts[:-1]
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.ImportFrom) or not (node.level or (
+                node.module or "").startswith("jaxiso")):
+            continue
+        target = _target(path, node).split(".")
+        dotted = [target + [a.name] for a in node.names if _is_module(path, node, a.name)]
+        for parts in dotted + [target]:
+            inner = parts[1:]  # under jaxiso
+            for k, part in enumerate(inner):
+                if k >= 1 and _is_private(part) and tuple(inner[:k]) != mine[:k]:
+                    yield ".".join(parts), node.lineno
+
+
+def test_no_subpackage_reaches_into_anothers_private_modules(modules):
+    found = sorted({(_name(p), m, line) for p, t in modules.items()
+                    for m, line in _foreign_private_modules(p, t)})
+    assert not found, f"private modules of another subpackage imported: {found}"
 
 
 def test_no_import_circle(modules):

@@ -28,8 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._core import concrete, on_points
-from ..arith import Interval, _tape, aa
-from ..arith._extend import equation_count
+from ..arith import Interval, aa, equation_count
+from ..arith import tape as _tape
 from ._field import enclosure, extended, ray_boxes
 from ._grid import values_key
 from ._memo import BoundedCache

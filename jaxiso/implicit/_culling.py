@@ -7,7 +7,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ..arith._extend import network_shape
+from ..arith import network_shape
 from ._grid import build_sign_grid, free_from, samples_per_segment, segment_span, values_key
 from ._memo import BoundedCache
 from ._methods import METHODS

@@ -4,7 +4,7 @@ heavy function, as measured (benchmarks/NOTES.md)."""
 from __future__ import annotations
 
 from .._core import LANES, Plan, cpu_lanes
-from ..arith._extend import value_elements
+from ..arith import value_elements
 
 __all__ = ["packet_plan", "is_heavy", "HEAVY_ELEMENTS", "HEAVY_LANES_FROM", "CPU_TILES"]
 

@@ -27,8 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._core import on_points, pytree_dataclass
-from ..arith import Interval
-from ..arith._extend import equation_count
+from ..arith import Interval, equation_count
 from ._field import BOX_OVERLAP
 
 __all__ = ["polynomial_degree", "chebyshev_map", "chebyshev_enclosure", "MAX_DEGREE",

@@ -44,11 +44,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._core import DEFAULT_MEMORY_BUDGET, Hits, Rays, unit_or_facing
-from ..arith import _affine as aa
-from ..arith import _tape
-from ..arith._affine_type import Affine
-from ..arith._interval import Interval
-from ..arith._tape import Tape
+from ..arith import Affine, Interval, Tape, aa
+from ..arith import tape as _tape
 from ._bisect import depth_for, piece_width
 from ._field import (
     CLOSER_PARTS,

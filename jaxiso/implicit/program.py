@@ -22,10 +22,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..arith import _tape
-from ..arith._affine_type import Affine
-from ..arith._interval import Interval
-from ..arith._tape import Tape
+from ..arith import Affine, Interval, Tape
+from ..arith import tape as _tape
 from ._field import as_field
 from ._memo import BoundedCache
 from .vm import VMProgram

@@ -2,7 +2,7 @@
 
 from .._camera import Camera
 from .._core import Hits, Plan, Rays, Scene
-from ._distributed import intersect, process_mesh
+from ._distributed import intersect, process_mesh, spans_processes, to_global, to_host
 from ._image import Image, save_png
 from ._plan import (
     from_tiles,
@@ -16,4 +16,5 @@ from ._render import Light, Shading, render
 
 __all__ = ["Camera", "Rays", "Hits", "Plan", "Scene", "plan_for", "intersect", "render",
            "Light", "Shading", "Image", "save_png", "to_tiles", "from_tiles",
-           "morton_order", "to_zorder", "from_zorder", "process_mesh"]
+           "morton_order", "to_zorder", "from_zorder", "process_mesh", "spans_processes",
+           "to_global", "to_host"]
