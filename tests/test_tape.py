@@ -137,6 +137,41 @@ def test_a_store_read_through_an_index_equals_the_gathered_tapes():
                                   np.asarray(ev(own, pts)))
 
 
+def test_narrowed_tapes_evaluate_bitwise_as_the_wide_ones():
+    """Tapes held narrow (int8 opcodes, int16 operands and registers: the tape path's
+    stores that are no longer pruned) give bitwise the values and choices of the int32
+    tapes, read whole or through an index, on points, intervals and affine forms; and
+    take 15 bytes an instruction."""
+    R = 16
+    tape, rng, blo, bhi, coords, batch, f, chosen = _csg40_choices(5, R)
+    store = jax.jit(_tape.prune)(batch, chosen[:, :, 0])
+    narrow = _tape.narrowed(store)
+    per_instruction = sum(x.dtype.itemsize * x[..., 0].size for x in
+                          (narrow.op, narrow.a, narrow.b, narrow.imm, narrow.reg))
+    assert per_instruction == 15 * narrow.length
+    ix = jnp.asarray(rng.integers(0, R, 40).astype(np.int32))
+    ev = jax.jit(_tape.evaluate, static_argnames="record")
+    u = rng.uniform(size=(40, 8, 3)).astype(np.float32)
+    q = blo[np.asarray(ix)][:, None] + u * (bhi - blo)[np.asarray(ix)][:, None]
+    pts = [jnp.asarray(q[..., k], jnp.float32) for k in range(3)] + [jnp.float32(0)]
+    np.testing.assert_array_equal(np.asarray(ev(narrow, pts, index=ix)),
+                                  np.asarray(ev(store, pts, index=ix)))
+    lo, hi = jnp.asarray(blo, jnp.float32), jnp.asarray(bhi, jnp.float32)
+    boxes = [ji.Interval(lo[:, None, k], hi[:, None, k]) for k in range(3)]
+    zero = ji.Interval(jnp.float32(0), jnp.float32(0))
+    a, ca = ev(narrow, boxes + [zero], record=True)
+    b, cb = ev(store, boxes + [zero], record=True)
+    for x, y in ((a.lo, b.lo), (a.hi, b.hi), (ca, cb)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    forms = [ji.aa.from_interval(b, k, 3) for k, b in enumerate(boxes)]
+    forms.append(ji.aa.as_affine(jnp.zeros((R, 1), jnp.float32), 3))
+    a, b = ev(narrow, forms), ev(store, forms)
+    for x, y in ((a.center, b.center), (a.dev, b.dev), (a.err, b.err)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    with pytest.raises(ValueError, match="int16"):
+        _tape.narrowed(_tape.resize(store, 2**15))
+
+
 def test_pruning_in_two_stages_equals_pruning_at_once():
     """Pruning by choices a group shares, then by one region's own on the shorter tape
     (mapped through `prune(..., origins=True)`), gives the tape one pruning gives; and

@@ -39,7 +39,7 @@ from ._interval import Interval
 __all__ = ["OPS", "Tape", "assemble", "from_function", "evaluate", "prune", "allocate",
            "bucket", "longest_bucket", "take_regions", "resize", "with_opset",
            "with_registers", "map_program", "register_bucket", "registers_in_use",
-           "highest_register"]
+           "highest_register", "narrowed"]
 
 OPS = ("const", "var", "neg", "abs", "square", "sqrt", "exp", "log", "sin", "cos", "ipow",
        "add", "sub", "mul", "div", "min", "max")
@@ -550,8 +550,10 @@ def _step(view: _View, n, packing: _Packing, cstack, rows, record: bool, i, carr
     regs, choices = carry
     tape = view.tape
     K = tape.registers
-    o, a = view.row(tape.op[i]), view.row(tape.a[i])
-    ra, rb, rd = (jnp.clip(view.row(tape.reg[i, k]), 0, K - 1) for k in range(3))
+    # int32 whatever the store's width (`narrowed` tapes hold int8 / int16)
+    o, a = (view.row(x[i]).astype(jnp.int32) for x in (tape.op, tape.a))
+    ra, rb, rd = (jnp.clip(view.row(tape.reg[i, k]).astype(jnp.int32), 0, K - 1)
+                  for k in range(3))
     rd = jnp.where(i < n, rd, K)  # past a tape's end: written nowhere
     imm = view.row(tape.imm[i])[:, None]
     if record:
@@ -891,6 +893,21 @@ def take_regions(tape: Tape, index) -> Tape:
         return map_program(tape, lambda x: jnp.broadcast_to(x[..., None], x.shape + (k,)),
                            jnp.broadcast_to(tape.n, (k,)))
     return map_program(tape, lambda x: x[..., index], tape.n[index])
+
+
+NARROW_MAX = 2**15 - 1  # the largest operand index or register an int16 holds
+
+
+def narrowed(tape: Tape) -> Tape:
+    """The tapes with opcodes as int8 and operands and registers as int16 (15 bytes an
+    instruction instead of 28), for tapes of at most `NARROW_MAX` instructions and
+    registers that are only evaluated (not pruned). `evaluate` reads either width."""
+    if tape.length > NARROW_MAX or tape.registers > NARROW_MAX:
+        raise ValueError(f"a tape of {tape.length} instructions and {tape.registers} "
+                         f"registers does not fit int16 operands")
+    return Tape(tape.op.astype(jnp.int8), tape.a.astype(jnp.int16), tape.b.astype(jnp.int16),
+                tape.imm, tape.n, tape.opset, tape.n_vars,
+                None if tape.reg is None else tape.reg.astype(jnp.int16), tape.registers)
 
 
 def resize(tape: Tape, length: int) -> Tape:
