@@ -45,13 +45,15 @@ class Affine(OperatorsMixin):
     hi: jax.Array = None
 
     def __post_init__(self):
-        shape = np.shape(self.center)
+        # defaults only for the fields left out: JAX rebuilds the pytree with every
+        # field given, sometimes as placeholders that are no arrays (explaining a jit
+        # cache miss), which must not be read here
         if self.defined is None:
-            object.__setattr__(self, "defined", jnp.ones(shape, bool))
-        dtype = jnp.result_type(self.center)
+            object.__setattr__(self, "defined", jnp.ones(np.shape(self.center), bool))
         for name, end in (("lo", -jnp.inf), ("hi", jnp.inf)):
             if getattr(self, name) is None:
-                object.__setattr__(self, name, jnp.full(shape, end, dtype))
+                object.__setattr__(self, name, jnp.full(np.shape(self.center), end,
+                                                        jnp.result_type(self.center)))
 
     __array_ufunc__ = None
 
