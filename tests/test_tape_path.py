@@ -121,8 +121,18 @@ def test_group_boxes_hold_every_ray_point_of_their_slabs():
         rays = ji.Rays(to_zorder(r.origin, 16), to_zorder(r.direction, 16))
         seg = tr._segments(rays, lo, hi, jnp.zeros(1024), jnp.full(1024, jnp.inf), 2.0**-11)
         _, _, inside, p, D, _ = (np.asarray(x, np.float64) for x in seg)
+        pyramid = tr._group_hulls(seg, 64)
+        assert sorted(pyramid) == [1, 4, 16, 64]
+        for size in (1, 4, 16, 64):  # each size's hulls: the groups' own min / max
+            ok = (inside > 0).reshape(-1, size, 1)
+            for k, x in enumerate((p, p + D)):
+                xs = np.asarray(x, np.float32).reshape(-1, size, 3)
+                np.testing.assert_array_equal(np.asarray(pyramid[size][2 * k]),
+                                              np.where(ok, xs, np.inf).min(axis=1))
+                np.testing.assert_array_equal(np.asarray(pyramid[size][2 * k + 1]),
+                                              np.where(ok, xs, -np.inf).max(axis=1))
         for size in (16, 64):
-            hull = tr._group_hulls(seg, size)
+            hull = pyramid[size]
             g = jnp.repeat(jnp.arange(1024 // size, dtype=jnp.int32), 4)[None]
             s0 = jnp.tile(jnp.arange(4.0) / 4, 1024 // size)[None]
             blo, bhi, valid = (np.asarray(x) for x in tr._group_boxes(

@@ -182,19 +182,27 @@ def _child_slabs(reg, fine, q, h, single):
     return g, s0, s1, valid
 
 
-@functools.partial(jax.jit, static_argnames=("size",))
-def _group_hulls(seg, size):
-    """Per group of `size` consecutive rays (those inside the box): the hulls of their
-    segments' entry points p and exit points p + D (lo, hi [groups, 3] each), and whether
-    any ray is inside (bool [groups])."""
+@functools.partial(jax.jit, static_argnames=("largest",))
+def _group_hulls(seg, largest):
+    """For every group size 1, 4, ..., `largest` (a power of 4): per group of that many
+    consecutive rays (those inside the box), the hulls of their segments' entry points p
+    and exit points p + D (lo, hi [groups, 3] each) and whether any ray is inside (bool
+    [groups]); {size: hulls}. One compiled call, each size from the next finer (the
+    groups' hulls one by one compiled once per size: 7 programs at 1024^2)."""
     _, _, inside, p, D, _ = seg
-    ok = inside.reshape(-1, size, 1)
+    ok = inside[:, None]
     big = jnp.float32(jnp.inf)
     hulls = []
     for x in (p, p + D):
-        x = x.reshape(-1, size, 3)
-        hulls += [jnp.min(jnp.where(ok, x, big), axis=1), jnp.max(jnp.where(ok, x, -big), axis=1)]
-    return (*hulls, jnp.any(ok[..., 0], axis=1))
+        hulls += [jnp.where(ok, x, big), jnp.where(ok, x, -big)]
+    level = (*hulls, inside)
+    by_size, size = {1: level}, 1
+    while size < largest:
+        size *= 4
+        plo, phi, elo, ehi, any_inside = (x.reshape((-1, 4) + x.shape[1:]) for x in level)
+        level = (plo.min(1), phi.max(1), elo.min(1), ehi.max(1), any_inside.any(1))
+        by_size[size] = level
+    return by_size
 
 
 def _group_boxes(hull, g, s0, s1, lo, hi, valid):
@@ -547,7 +555,7 @@ def intersect_rays(scene, tape: Tape, rays: Rays, t_min, t_max, stats: dict | No
     padded, t_min, t_max = _padded_rays(rays, t_min, t_max, n_pad)
     seg = _segments(padded, scene.lo, scene.hi, t_min, t_max, scene.eps)
     run = _Run(scene, seg, scene.isovalues, _rest_coordinates(scene, tape.n_vars), root_q,
-               group, budget, prune, {})
+               group, budget, prune, _group_hulls(seg, group))
     per_level = None if stats is None else {}
     found, batches, depth = _traverse(run, [_root_work(tape, n_pad // per_root, per_root)],
                                       n_pad, per_level)
@@ -573,7 +581,7 @@ class _Run(NamedTuple):
     group: int  # rays per root group
     budget: int
     prune: bool
-    hulls: dict  # rays per group -> `_group_hulls`, filled as levels reach it
+    hulls: dict  # rays per group -> the groups' hulls (`_group_hulls`)
 
 
 def root_group(n: int) -> int:
@@ -603,6 +611,7 @@ def _root_groups(n: int, length: int, budget: int):
     return group, root_q
 
 
+@functools.partial(jax.jit, static_argnames=("n_pad",))
 def _padded_rays(rays: Rays, t_min, t_max, n_pad: int):
     """Rays [N] padded to [n_pad] (copies of the first ray with an empty range
     t_min = 1 > t_max = 0), and t_min, t_max [n_pad]."""
@@ -630,11 +639,17 @@ def _root_work(tape: Tape, n_roots: int, per_root: int):
     """The first batch of work: (tapes, regions, how many are real, level, rays per
     region) for n_roots roots, each `per_root` rays over their whole segments with the
     full tape."""
+    return (*_roots(tape, n_roots), n_roots, 0, per_root)
+
+
+@functools.partial(jax.jit, static_argnames=("n_roots",))
+def _roots(tape: Tape, n_roots: int):
+    """The root store (the one full tape) and n_roots regions over whole segments (one
+    compiled call: eagerly, each of these small steps compiles on its own)."""
     roots = dict(g=jnp.arange(n_roots, dtype=jnp.int32), s0=jnp.zeros(n_roots),
                  s1=jnp.ones(n_roots), valid=jnp.ones(n_roots, bool),
                  tid=jnp.zeros(n_roots, jnp.int32))
-    return (_tape.take_regions(tape, jnp.zeros(1, jnp.int32)), roots, n_roots, 0,
-            per_root)
+    return _tape.take_regions(tape, jnp.zeros(1, jnp.int32)), roots
 
 
 def _traverse(run: _Run, work: list, n_pad: int, per_level: dict | None):
@@ -644,10 +659,7 @@ def _traverse(run: _Run, work: list, n_pad: int, per_level: dict | None):
 
     Returns ((best s, value, gradient): each ray's nearest hit, [n_pad] arrays), the
     batches run and the depth reached."""
-    first = jnp.full(n_pad, jnp.inf, jnp.float32)
-    best = jnp.full(n_pad, jnp.inf, jnp.float32)
-    value = jnp.zeros(n_pad, jnp.float32)
-    gradient = jnp.zeros((n_pad, 3), jnp.float32)
+    first, best, value, gradient = _no_hits(n_pad)
     batches = depth = 0
     heap = _Heap()
     while work:
@@ -660,8 +672,6 @@ def _traverse(run: _Run, work: list, n_pad: int, per_level: dict | None):
         batches += 1
         depth = max(depth, level + 1)
         Gc = G // q
-        if Gc not in run.hulls:
-            run.hulls[Gc] = _group_hulls(run.seg, Gc)
         children, amb, chosen, counts, first = _level(
             tapes, reg, run.seg, run.hulls[Gc], run.scene.lo, run.scene.hi, run.rest,
             run.iso, first, G, q, h, box_arithmetic(run.scene.arithmetic),
@@ -681,6 +691,14 @@ def _traverse(run: _Run, work: list, n_pad: int, per_level: dict | None):
         del children, amb, chosen, pieces
         heap.batch_done()
     return (best, value, gradient), batches, depth
+
+
+@functools.partial(jax.jit, static_argnames=("n",))
+def _no_hits(n: int):
+    """(first, best s, value, gradient) of n rays before any batch: no piece proven, no
+    hit."""
+    far = jnp.full(n, jnp.inf, jnp.float32)
+    return far, far, jnp.zeros(n, jnp.float32), jnp.zeros((n, 3), jnp.float32)
 
 
 def _batch_parts(tapes, reg, count: int, level: int, children: int, budget: int):
