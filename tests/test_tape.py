@@ -137,6 +137,30 @@ def test_a_store_read_through_an_index_equals_the_gathered_tapes():
                                   np.asarray(ev(own, pts)))
 
 
+def test_inactive_regions_run_nothing_and_change_nothing():
+    """`evaluate(..., active=)` gives the active regions bitwise the values of a run
+    without the mask (whole tapes, a store through an index, `chunked_eval`'s chunks);
+    with no region active the loop runs no step (every register stays 0, so the
+    result is 0)."""
+    R = 16
+    tape, rng, blo, bhi, coords, batch, f, chosen = _csg40_choices(6, R)
+    store = jax.jit(_tape.prune)(batch, chosen[:, :, 0])
+    ix = jnp.asarray(rng.integers(0, R, 32).astype(np.int32))
+    active = jnp.asarray(rng.uniform(size=32) < 0.5)
+    u = rng.uniform(size=(32, 4, 3)).astype(np.float32)
+    q = blo[np.asarray(ix)][:, None] + u * (bhi - blo)[np.asarray(ix)][:, None]
+    pts = [jnp.asarray(q[..., k], jnp.float32) for k in range(3)] + [jnp.float32(0)]
+    ev = jax.jit(_tape.evaluate, static_argnames="record")
+    whole = np.asarray(ev(store, pts, index=ix))
+    masked = np.asarray(ev(store, pts, index=ix, active=active))
+    a = np.asarray(active)
+    np.testing.assert_array_equal(masked[a], whole[a])
+    chunked = jax.jit(lambda t, c, i, m: P.chunked_eval(t, c, False, 2**8, 4, i, m))
+    np.testing.assert_array_equal(np.asarray(chunked(store, pts, ix, active))[a], whole[a])
+    none = np.asarray(ev(store, pts, index=ix, active=jnp.zeros(32, bool)))
+    np.testing.assert_array_equal(none, np.zeros_like(none))
+
+
 def test_narrowed_tapes_evaluate_bitwise_as_the_wide_ones():
     """Tapes held narrow (int8 opcodes, int16 operands and registers: the tape path's
     stores that are no longer pruned) give bitwise the values and choices of the int32

@@ -418,7 +418,7 @@ def _choice(o, va, vb):
     return jnp.where((o == MIN) | (o == MAX), pick, jnp.int8(0))
 
 
-def evaluate(tape: Tape, coords, record: bool = False, index=None):
+def evaluate(tape: Tape, coords, record: bool = False, index=None, active=None):
     """Run a batch of tapes on points, intervals or affine forms.
 
     Args:
@@ -432,6 +432,8 @@ def evaluate(tape: Tape, coords, record: bool = False, index=None):
         second, 0: both possible or not a min/max).
       index: None, or int32 [R]: each region's tape in the store (regions that share a
         tape read it in place, without a copy per region).
+      active: None, or bool [R]: regions to run (the others run no instruction and
+        return garbage; a batch padded at its end then costs what its real regions do).
 
     Returns the program's value [R, P] (an array, an Interval or an Affine), and the
     choices if `record`. Pure; jit it with the tape as an argument (its `opset`/`n_vars`/
@@ -455,7 +457,7 @@ def evaluate(tape: Tape, coords, record: bool = False, index=None):
     packing = _Packing(kind, len(cstack), cstack[0].shape[-1], n_sym)
     regs = jnp.zeros((K, R, packing.parts * packing.width), jnp.float32)
     choices = jnp.zeros((L, R, packing.width), jnp.int8) if record else None
-    n = view.n()
+    n = view.n() if active is None else jnp.where(active, view.n(), 0)
     step = functools.partial(_step, view, n, packing, cstack, rows, record)
     regs, choices = lax.fori_loop(0, jnp.max(n), step, (regs, choices))
     last = jnp.clip(n - 1, 0, L - 1)

@@ -143,7 +143,7 @@ def _level(tapes, reg, seg, hull, lo, hi, rest, iso, first, G, q, h, arithmetic,
         pr, Dr = p[idx], D[idx]
     boxes = _child_coordinates(arithmetic, blo, bhi, pr, Dr, s0, s1, rest)
     tid = reg["tid"]
-    f = chunked_eval(tapes, boxes, record, _BUDGET, _CHUNKS, tid)
+    f = chunked_eval(tapes, boxes, record, _BUDGET, _CHUNKS, tid, reg["valid"])
     f, chosen = f if record else (f, None)
     if arithmetic == "affine":
         f = aa.to_interval(f)
@@ -257,8 +257,8 @@ def _behind_first_roots(tapes, tid, amb, first, idx, pr, Dr, s0, s1, rest, iso):
     # both ends in one evaluation ([R, 2 C] points): one evaluator loop, compiled once
     ends = pr[..., 0, None, :] + jnp.stack([s0, s1], -1)[..., None] * Dr[..., 0, None, :]
     ends = ends.reshape(R, 2 * C, 3)
-    f = _point_eval(tapes, tid, ends[..., 0], ends[..., 1], ends[..., 2],
-                    rest).reshape(R, C, 2)
+    f = _point_eval(tapes, tid, ends[..., 0], ends[..., 1], ends[..., 2], rest,
+                    active=jnp.any(amb, axis=1)).reshape(R, C, 2)  # others: unread
     fa, fb = f[..., 0], f[..., 1]
     proven = amb & jnp.any((fa[..., None] - iso) * (fb[..., None] - iso) <= 0, axis=-1)
     n_rays = first.shape[0]
@@ -297,17 +297,19 @@ def _longest_first(tapes, reg, length):
     the store's tapes cut (or padded) to `length` instructions; tapes that will not be
     pruned again held narrow (`_tape.narrowed`: 15 bytes an instruction instead of 28;
     the slab at 1024^2 held five such stores of 32,768 tapes at its peak)."""
-    order = jnp.argsort(-tapes.n[reg["tid"]])
+    # padding regions last: chunks of them run no instruction (`chunked_eval`'s active)
+    order = jnp.argsort(-jnp.where(reg["valid"], tapes.n[reg["tid"]], -1))
     store = _tape.resize(tapes, length)
     if length <= PRUNE_ABOVE:
         store = _tape.narrowed(store)
     return store, {k: v[order] for k, v in reg.items()}
 
 
-def _point_eval(tapes, tid, x, y, z, rest, budget=_BUDGET):
+def _point_eval(tapes, tid, x, y, z, rest, budget=_BUDGET, active=None):
     """The tapes tid [n] of the store at points ([n, m] each); `rest`: the coordinates
-    after x, y, z (w, scalar params); `budget`: the evaluator's elements."""
-    return chunked_eval(tapes, [x, y, z, *rest], False, budget, _CHUNKS, tid)
+    after x, y, z (w, scalar params); `budget`: the evaluator's elements; `active`
+    (None or bool [n]): the regions to evaluate."""
+    return chunked_eval(tapes, [x, y, z, *rest], False, budget, _CHUNKS, tid, active)
 
 
 def _piece_lines(seg, reg):

@@ -164,12 +164,13 @@ def _lead(c):
 _GATHER_ONCE = 2**20
 
 
-def chunked_eval(tapes, coords, record, budget, min_chunks=1, index=None):
+def chunked_eval(tapes, coords, record, budget, min_chunks=1, index=None, active=None):
     """`_tape.evaluate` over region chunks so that its working set (the register file,
     and the choices of `record`) stays within `budget` elements (R is a power of two), in
     at least `min_chunks` chunks (each runs as many instructions as its longest tape:
     regions sorted by tape length gain). `index` (None or [R]): `tapes` is a store and
-    region r runs tape index[r] (`_tape.evaluate`); the chunks split the index."""
+    region r runs tape index[r] (`_tape.evaluate`); the chunks split the index.
+    `active` (None or bool [R]): the regions to run (`_tape.evaluate`)."""
     L = tapes.length
     if index is not None and index.shape[0] * L <= _GATHER_ONCE:
         tapes, index = _tape.take_regions(tapes, index), None
@@ -184,7 +185,9 @@ def chunked_eval(tapes, coords, record, budget, min_chunks=1, index=None):
                                      chunks < min_chunks):
         chunks *= 2
     if chunks == 1:
-        return _tape.evaluate(tapes, coords, record, index)
+        return _tape.evaluate(tapes, coords, record, index, active)
+    act = (jnp.ones((chunks, R // chunks), bool) if active is None
+           else active.reshape(chunks, R // chunks))
 
     def split_coord(x):
         x = jnp.broadcast_to(x, (R, 1)) if jnp.ndim(x) == 0 else x
@@ -197,10 +200,12 @@ def chunked_eval(tapes, coords, record, budget, min_chunks=1, index=None):
     cc = jax.tree_util.tree_map(split_coord, coords)
     if index is None:
         ct = _tape.map_program(tapes, split_prog, tapes.n.reshape(chunks, R // chunks))
-        out = jax.lax.map(lambda args: _tape.evaluate(args[0], args[1], record), (ct, cc))
+        out = jax.lax.map(lambda args: _tape.evaluate(args[0], args[1], record,
+                                                      active=args[2]), (ct, cc, act))
     else:
-        out = jax.lax.map(lambda args: _tape.evaluate(tapes, args[1], record, args[0]),
-                          (index.reshape(chunks, R // chunks), cc))
+        out = jax.lax.map(lambda args: _tape.evaluate(tapes, args[1], record, args[0],
+                                                      args[2]),
+                          (index.reshape(chunks, R // chunks), cc, act))
     if record:
         val, ch = out
         ch = jnp.moveaxis(ch, 0, 1).reshape((L, R) + ch.shape[3:])
