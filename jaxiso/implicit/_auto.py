@@ -287,8 +287,7 @@ def _tape_widths(tape, p, D, pts, rest):
     one = _tape.take_regions(tape, jnp.zeros(1, jnp.int32))
     rest = [jnp.asarray(v, jnp.float32) for v in rest]
     s0, s1 = jnp.zeros((1, N_PIECES)), jnp.ones((1, N_PIECES))
-    vals = _tape.evaluate(one, [pts[None, ..., c].reshape(1, -1) for c in range(3)]
-                          + list(rest))
+    vals = _tape.evaluate(one, [pts[None, ..., c].reshape(1, -1) for c in range(3)] + rest)
     widths = {}
     for arithmetic in ("interval", "affine"):
         boxes = ray_boxes(p[None], D[None], s0, s1, arithmetic)
