@@ -75,13 +75,16 @@ def test_plan_is_shared_by_intersect_and_render():
         np.testing.assert_allclose(np.asarray(h.t), np.asarray(default.t), rtol=1e-6)
 
 
-def _median_time(fn, repeats=7):
-    times = []
+def _paired_medians(first, second, repeats=15):
+    """Median seconds of each call, timed in alternation so that a neighbour's load on a
+    busy machine (the suite runs one worker per core) falls on both alike."""
+    times = ([], [])
     for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+        for fn, out in zip((first, second), times):
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn())
+            out.append(time.perf_counter() - t0)
+    return tuple(statistics.median(t) for t in times)
 
 
 def test_eager_intersect_is_as_fast_as_jit():
@@ -91,9 +94,10 @@ def test_eager_intersect_is_as_fast_as_jit():
     jitted = jax.jit(lambda s, r: ji.intersect(s, r))
     jax.block_until_ready(ji.intersect(scene, rays).t)
     jax.block_until_ready(jitted(scene, rays).t)
-    eager = _median_time(lambda: ji.intersect(scene, rays).t)
-    under_jit = _median_time(lambda: jitted(scene, rays).t)
-    # 1.5x (issue 12) plus 2 ms for the dispatch noise of a busy 2-core machine
+    eager, under_jit = _paired_medians(lambda: ji.intersect(scene, rays).t,
+                                       lambda: jitted(scene, rays).t)
+    # 1.5x (issue 12) plus 2 ms for the dispatch noise of a busy 2-core machine (CI once
+    # saw 10.1 ms against 4.6 ms when the two were timed one after the other)
     assert eager <= 1.5 * under_jit + 2e-3, (eager, under_jit)
 
 
