@@ -511,9 +511,10 @@ class Bisection:
     verify: None or ``verify(p, D, s0, s1)`` (`_field.root_check`).
     heavy: a costly function (a network) on lanes: walks start at the depth
       `start_depth` measures (on the catalogue at 512^2 that gained nothing clear and
-      cost 0.4-1.4 s of compile), and the narrowest lane phase is 64 wide, not 32 (every
-      phase compiles the walk again: on the networks at 128^2 the 32-lane phase cost
-      1.3-1.4 s of first call and saved 1-2% of the run).
+      cost 0.4-1.4 s of compile), and its lanes narrow in phases down to 64 (a light
+      function's run in one: `_tail_width`); not 32: every phase compiles the walk
+      again, and on the networks at 128^2 the 32-lane phase cost 1.3-1.4 s of first
+      call and saved 1-2% of the run.
     empty: None or (ahead, aux): stretches of the rays that hold no root, which
       t-bisection's walks leap (`t_bisect_lanes`; K-bisection's shared pieces do not).
     verify_levels: t-bisection's walks with verify accept pieces that many levels above
@@ -558,10 +559,12 @@ def run_bisection(test, p, D, inside, how: Bisection) -> Result:
 
 
 def _tail_width(how: Bisection) -> int | None:
-    """The narrowest lane phase: a third phase of 64 lanes for costly functions (a
-    network's step on 512 idle-heavy lanes costs more than the phase's compile), else
-    the default two phases (`jaxiso._lanes.phase_widths`)."""
-    return 64 if how.heavy else None
+    """The narrowest lane phase. Costly functions: a second and third phase of 512 and 64
+    lanes (a network's step on 4,096 mostly idle lanes costs more than a phase's
+    compile). Light ones: one phase (each phase compiles the walk again; on the 2-core
+    CPU a 512-lane tail phase cost polynomials 0.9-1.3 s and affine bretzel4 3-3.5 s of
+    first call for frames within noise, 0-8%: benchmarks/NOTES.md, session 34)."""
+    return 64 if how.heavy else how.lanes
 
 
 def t_bisect_packet(test, p, D, d_max, inside, max_steps, verify, empty=None,
