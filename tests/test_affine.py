@@ -1,5 +1,7 @@
 """Reduced affine arithmetic (AF1): Eq. 6.15 by hand, conversions, correlation, rules."""
 
+import math
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -70,6 +72,8 @@ NONLINEAR = {
     "cosh": (aa.cosh, jnp.cosh, (-1.0, 2.0)), "sinh": (aa.sinh, jnp.sinh, (-1.0, 2.0)),
     "tanh": (aa.tanh, jnp.tanh, (-1.0, 2.0)), "atan": (aa.atan, jnp.arctan, (-3.0, 1.0)),
     "cbrt": (aa.cbrt, jnp.cbrt, (-1.0, 8.0)), "abs": (aa.abs, jnp.abs, (-1.0, 3.0)),
+    "logistic": (aa.logistic, jax.nn.sigmoid, (-3.0, 1.0)),
+    "erf": (aa.erf, jax.scipy.special.erf, (-0.5, 2.0)),
     "sin": (aa.sin, jnp.sin, (-1.0, 3.0)), "cos": (aa.cos, jnp.cos, (-1.0, 3.0)),
     "max": (lambda v: aa.maximum(v, 0.5), lambda v: jnp.maximum(v, 0.5), (-1.0, 2.0)),
     "min": (lambda v: aa.minimum(v, 0.5), lambda v: jnp.minimum(v, 0.5), (-1.0, 2.0)),
@@ -94,6 +98,90 @@ def test_nonlinear_rules_enclose_along_the_symbol(name):
     rng = np.nanmax(vals[finite]) - np.nanmin(vals[finite])
     if name not in ("sin", "cos"):     # these fall back to Interval by design
         assert float(out.err) < 0.75 * rng + 1e-6, name
+
+
+_ERF64 = np.vectorize(math.erf)
+# float64 references written apart from the rules: (rule, g, g', inflection value)
+INFLECTED = {
+    "tanh": (aa.tanh, np.tanh, lambda v: 1.0 / np.cosh(v) ** 2),
+    "atan": (aa.atan, np.arctan, lambda v: 1.0 / (1.0 + v * v)),
+    "logistic": (aa.logistic, lambda v: 1.0 / (1.0 + np.exp(-v)),
+                 lambda v: np.exp(-np.abs(v)) / (1.0 + np.exp(-np.abs(v))) ** 2),
+    "erf": (aa.erf, _ERF64, lambda v: 2.0 / math.sqrt(math.pi) * np.exp(-v * v)),
+    "sinh": (aa.sinh, np.sinh, np.cosh),
+    "cbrt": (aa.cbrt, np.cbrt, lambda v: 1.0 / (3.0 * np.cbrt(v * v))),
+}
+
+
+def _random_ranges(rng, k):
+    """k ranges (lo, hi) of every kind: straddling 0, one-sided, narrow, wide, points."""
+    centre = rng.uniform(-4.0, 4.0, k) * rng.choice([1.0, 0.1, 0.0], k, p=[0.7, 0.2, 0.1])
+    radius = 10.0 ** rng.uniform(-5.0, 0.8, k)
+    radius[rng.random(k) < 0.05] = 0.0
+    return (centre - radius).astype(np.float32), (centre + radius).astype(np.float32)
+
+
+@pytest.mark.parametrize("name", sorted(INFLECTED))
+def test_inflected_rules_enclose_and_beat_min_range(name):
+    """Over 400 random ranges each: the form encloses g along its symbol (float64 g on
+    1,001 points of each range), and its error is never above min-range's (the least
+    derivative's slope, computed here in float64) by more than rounding, and below half
+    of it on ranges that straddle 0 and reach where g bends."""
+    rule, g, dg = INFLECTED[name]
+    rng = np.random.default_rng(11)
+    lo, hi = _random_ranges(rng, 400)
+    if name == "sinh":  # float32 sinh overflows past 89
+        lo, hi = np.clip(lo, -20, 20), np.clip(hi, -20, 20)
+    x = aa.from_interval(ia.Interval(jnp.asarray(lo), jnp.asarray(hi)), symbol=0, n=1)
+    out = jax.jit(rule)(x)
+    c, d, err = (np.asarray(v, np.float64) for v in (out.center, out.dev[:, 0], out.err))
+    e = np.linspace(-1.0, 1.0, 1001)
+    xc, xd = np.asarray(x.center, np.float64), np.asarray(x.dev[:, 0], np.float64)
+    xs = xc[:, None] + xd[:, None] * e           # the points of each range, float64
+    vals = g(xs)
+    line = c[:, None] + d[:, None] * e
+    slack = err[:, None] + 1e-6 * (np.abs(vals) + 1e-30)
+    assert (np.abs(vals - line) <= slack).all(), name
+    assert (np.asarray(out.lo) <= vals.min(axis=1) + 1e-6).all()
+    assert (np.asarray(out.hi) >= vals.max(axis=1) - 1e-6).all()
+    # min-range in float64: slope g'(v) at the range's largest |v| (sinh: smallest)
+    a, b = xs[:, 0], xs[:, -1]
+    mag = np.maximum(np.abs(a), np.abs(b))
+    mig = np.where((a <= 0) & (b >= 0), 0.0, np.minimum(np.abs(a), np.abs(b)))
+    alpha = dg(mig) if name == "sinh" else dg(mag)
+    ends = np.stack([g(a) - alpha * a, g(b) - alpha * b])
+    min_range = 0.5 * (ends.max(0) - ends.min(0))
+    ok = np.isfinite(min_range) & (hi > lo)
+    # both pad their bounds by a few float32 ulps of the magnitudes involved
+    rounding = 1e-5 * (np.abs(g(a)) + np.abs(g(b)) + np.abs(alpha) * (np.abs(a) + np.abs(b)))
+    assert (err[ok] <= min_range[ok] + rounding[ok] + 1e-6).all(), name
+    bends = ok & (a < 0) & (b > 0) & (hi - lo > 1.0) & (hi - lo < 6.0)
+    if name not in ("sinh", "cbrt"):  # their bends are at the ends / at 0
+        assert bends.sum() > 20
+        assert np.median(err[bends] / min_range[bends]) < 0.5, name
+
+
+def test_sigmoid_networks_keep_their_correlation():
+    """A 3-layer sigmoid network on a small box: the form's width is a small multiple of
+    the true range (the interval rule lost the correlation: many times wider)."""
+    rng = np.random.default_rng(3)
+    A1, A2 = rng.normal(size=(3, 16)), rng.normal(size=(16, 16)) / 4
+    a3 = rng.normal(size=16) / 4
+
+    def net(x, y, z):
+        h = jax.nn.sigmoid(jnp.stack([x, y, z]) @ A1)
+        return jax.nn.sigmoid(h @ A2) @ a3
+
+    box = [ia.interval(0.2, 0.3), ia.interval(-0.1, 0.0), ia.interval(0.4, 0.5)]
+    r = ji.extend(net, "affine")(*box)
+    r_iv = ji.extend(net, "interval")(*box)
+    g = np.stack(np.meshgrid(*[np.linspace(b.lo, b.hi, 21) for b in box]), -1).reshape(-1, 3)
+    vals = np.asarray(jax.vmap(lambda p: net(*p))(jnp.asarray(g, jnp.float32)), np.float64)
+    lo, hi = float(aa.to_interval(r).lo), float(aa.to_interval(r).hi)
+    assert lo <= vals.min() and vals.max() <= hi
+    true = vals.max() - vals.min()
+    assert hi - lo < 1.5 * true
+    assert float(r_iv.hi - r_iv.lo) > 3 * (hi - lo)
 
 
 def test_where_keeps_branch_exactly_when_certain():

@@ -147,7 +147,9 @@ def test_silu_network_encloses_tighter_than_its_body():
     """A 6 x 32 silu network (the spelling suite's): the rule's enclosure on small boxes
     is narrower than its body's (x * sigmoid(x)) and than the spelling
     x / (1 + exp(-x)); auto's measurement on ray pieces went from 1,600x the true
-    range to 20x with it (38x for the other spelling)."""
+    range to 20x with it (38x for the other spelling). Since sigmoid has an affine rule
+    of its own (session 34) the body is tighter too: median widths 4.54 (rule), 7.35
+    (body), 11.1 (the other spelling)."""
     from jaxiso.implicit import spellings as sp
     net = sp.random_net(0, "silu", 6, 32)
     rng = np.random.default_rng(4)
@@ -165,7 +167,7 @@ def test_silu_network_encloses_tighter_than_its_body():
     rule = width(jax.nn.silu)
     body = width(lambda h: h * jax.nn.sigmoid(h))
     other = width(lambda h: h / (1.0 + jnp.exp(-h)))
-    assert np.isfinite(rule) and rule < 0.5 * body and rule < other, (rule, body, other)
+    assert np.isfinite(rule) and rule < 0.75 * body and rule < other, (rule, body, other)
 
 
 def test_relu_of_an_off_neuron_drops_its_error():

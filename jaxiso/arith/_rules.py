@@ -223,8 +223,10 @@ for _name, _fn, _lo, _hi, _inc in (
         ("erf", jax.scipy.special.erf, -jnp.inf, jnp.inf, True)):
     _elementwise(_name, ia.monotone_on(_fn, _lo, _hi, _inc), ulps=_transcendental_ulps(_name))
 
-# convex / concave on their domain: Chebyshev forms keep the correlation
-for _name, _aa in (("expm1", aa.expm1), ("log1p", aa.log1p)):
+# convex / concave on their domain (Chebyshev), or inflected at 0 (`aa._inflected`):
+# their affine forms keep the correlation
+for _name, _aa in (("expm1", aa.expm1), ("log1p", aa.log1p), ("logistic", aa.logistic),
+                   ("erf", aa.erf)):
     RULES[_name] = dataclasses.replace(RULES[_name], affine=_drop_params(_aa))
 
 RULES["pow"] = Rule(_drop_params(ia.pow), _drop_params(aa.pow), ulps=_ulps.power)
