@@ -558,22 +558,28 @@ def _inflected(x: Affine, g, dg, dg_inv, g0: float, iv: Interval, fallback_iv: I
     pad = _pad(jnp.abs(ga) + jnp.abs(gb) + math.fabs(g0) + jnp.abs(m) * (jnp.abs(a) + jnp.abs(b))
                + jnp.where(left, mag_left, 0.0) + jnp.where(right, mag_right, 0.0), a.dtype)
     d_lo, d_hi = d_lo - pad, d_hi + pad
-    # min-range: the least derivative (g' even; at the end farthest from 0 where g'
-    # falls away from 0, at the nearest, or 0, where it grows), g there by symmetry
+    alpha, mr_lo, mr_hi = _min_range_bounds(a, b, ga, gb, g0, dg, convex_left)
+    chord = (d_hi - d_lo) < (mr_hi - mr_lo)  # NaN (an empty range): min-range, as before
+    return _linearized(x, jnp.where(chord, m, alpha), jnp.where(chord, d_lo, mr_lo),
+                       jnp.where(chord, d_hi, mr_hi), fallback_iv, iv.defined & x.defined)
+
+
+def _min_range_bounds(a, b, ga, gb, g0, dg, convex_left):
+    """Min-range for `_inflected`'s g on [a, b]: the least derivative alpha (g' even: at
+    the end farthest from 0 where g' falls away from 0, at the nearest end, or 0, where
+    it grows; g there by symmetry) and the bounds of ``g - alpha x`` (monotone: its
+    ends), padded."""
     far = jnp.abs(a) > jnp.abs(b)
     if convex_left:
         v, gv = jnp.where(far, -a, b), g0 + jnp.where(far, g0 - ga, gb - g0)
     else:
-        v = jnp.where(left & right, 0.0, jnp.where(far, jnp.abs(b), jnp.abs(a)))
-        gv = jnp.where(left & right, g0, g0 + jnp.abs(jnp.where(far, gb, ga) - g0))
+        across = (a < 0) & (b > 0)
+        v = jnp.where(across, 0.0, jnp.where(far, jnp.abs(b), jnp.abs(a)))
+        gv = jnp.where(across, g0, g0 + jnp.abs(jnp.where(far, gb, ga) - g0))
     alpha = dg(v, gv)
     h_a, h_b = ga - alpha * a, gb - alpha * b
-    pad_mr = _pad(jnp.abs(ga) + jnp.abs(gb) + jnp.abs(alpha) * (jnp.abs(a) + jnp.abs(b)),
-                  a.dtype)
-    mr_lo, mr_hi = jnp.minimum(h_a, h_b) - pad_mr, jnp.maximum(h_a, h_b) + pad_mr
-    chord = (d_hi - d_lo) < (mr_hi - mr_lo)  # NaN (an empty range): min-range, as before
-    return _linearized(x, jnp.where(chord, m, alpha), jnp.where(chord, d_lo, mr_lo),
-                       jnp.where(chord, d_hi, mr_hi), fallback_iv, iv.defined & x.defined)
+    pad = _pad(jnp.abs(ga) + jnp.abs(gb) + jnp.abs(alpha) * (jnp.abs(a) + jnp.abs(b)), a.dtype)
+    return alpha, jnp.minimum(h_a, h_b) - pad, jnp.maximum(h_a, h_b) + pad
 
 
 def _inflected_rule(g, dg, dg_inv, g0, interval_rule, convex_left=True, name=None):

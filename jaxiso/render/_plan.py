@@ -97,13 +97,16 @@ def _tape_hits(scene, rays, t_min, t_max, tile, budget):
     return jax.tree_util.tree_map(lambda x: from_zorder(x, tile, *shape), hits)
 
 
+@functools.partial(jax.jit, static_argnums=(1,))
 def to_zorder(x, tile: int):
     """`to_tiles`, then Z-order within each tile (tile a power of 2): every run of 4^k
-    consecutive entries is a square of pixels."""
+    consecutive entries is a square of pixels. Jitted: eagerly each of its steps
+    compiled on its own (the tape path's first call reorders rays, hits and colours)."""
     x = to_tiles(x, tile)
     return x.reshape((-1, tile * tile) + x.shape[1:])[:, morton_order(tile)].reshape(x.shape)
 
 
+@functools.partial(jax.jit, static_argnums=(1, 2, 3))
 def from_zorder(x, tile: int, height: int, width: int):
     """Inverse of `to_zorder`."""
     undo = np.argsort(morton_order(tile))
