@@ -268,11 +268,15 @@ def _minrange(x: Affine, g, alpha, iv: Interval, fallback_iv: Interval) -> Affin
     """Min-range linearisation of a monotone g: with `alpha` the derivative of least
     magnitude on the range, ``g - alpha x`` is monotone, so its range is at the ends."""
     a, b = iv.lo, iv.hi
-    ga, gb = g(a), g(b)
+    d_lo, d_hi = _end_residuals(a, b, g(a), g(b), alpha)
+    return _linearized(x, alpha, d_lo, d_hi, fallback_iv, iv.defined & x.defined)
+
+
+def _end_residuals(a, b, ga, gb, alpha):
+    """The range of a monotone ``g - alpha x`` on [a, b] (at its ends), padded."""
     h_a, h_b = ga - alpha * a, gb - alpha * b
     pad = _pad(jnp.abs(ga) + jnp.abs(gb) + jnp.abs(alpha) * (jnp.abs(a) + jnp.abs(b)), a.dtype)
-    return _linearized(x, alpha, jnp.minimum(h_a, h_b) - pad, jnp.maximum(h_a, h_b) + pad,
-                       fallback_iv, iv.defined & x.defined)
+    return jnp.minimum(h_a, h_b) - pad, jnp.maximum(h_a, h_b) + pad
 
 
 # `recip` linearises by Chebyshev only while |hi| <= _RECIP_RATIO |lo| (a range away
@@ -577,9 +581,7 @@ def _min_range_bounds(a, b, ga, gb, g0, dg, convex_left):
         v = jnp.where(across, 0.0, jnp.where(far, jnp.abs(b), jnp.abs(a)))
         gv = jnp.where(across, g0, g0 + jnp.abs(jnp.where(far, gb, ga) - g0))
     alpha = dg(v, gv)
-    h_a, h_b = ga - alpha * a, gb - alpha * b
-    pad = _pad(jnp.abs(ga) + jnp.abs(gb) + jnp.abs(alpha) * (jnp.abs(a) + jnp.abs(b)), a.dtype)
-    return alpha, jnp.minimum(h_a, h_b) - pad, jnp.maximum(h_a, h_b) + pad
+    return (alpha, *_end_residuals(a, b, ga, gb, alpha))
 
 
 def _inflected_rule(g, dg, dg_inv, g0, interval_rule, convex_left=True, name=None):
